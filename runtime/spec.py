@@ -1,0 +1,507 @@
+"""The single definition of every number that crosses a package boundary.
+
+Training, export, the per-drone runtime, the ground station and the C generator all read the arena, the
+agents' radii and speeds, the sensing and communication ranges, the team composition and the observation
+and action layout from here. ``SwarmSpec.hash`` is a version hash over all of it; it is stored in every
+exported model and checked when a model is loaded.
+
+Agents are always ordered ``[pursuers..., scouts..., evaders...]``.
+
+Observation layout (per observer, all in the world frame, SI units; see ``ObsLayout``):
+
+pursuers and scouts (the "pursuer team")
+    ``self_pos``   [2]        own position x, y [m]
+    ``self_vel``   [2]        own velocity vx, vy [m/s]
+    ``obstacles``  [K_o x 3]  every obstacle sorted by surface distance: dx, dy to its centre [m], radius [m]
+    ``targets``    [E x 6]    each evader, in fixed identity order, as this agent knows it (own sensing or
+                              relayed by teammates): dx, dy to its last known position [m], its last known
+                              vx, vy [m/s], age of that sighting [s], known flag (1 = known, 0 = never seen
+                              or older than ``sensing.target_memory``; the other five are then 0 except
+                              age = target_memory)
+    ``teammates``  [K_m x 5]  the nearest teammates within comm range: dx, dy [m], vx, vy [m/s], valid flag
+
+evaders
+    ``self_pos``, ``self_vel``, ``obstacles`` as above
+    ``threats``    [K_t x 5]  the nearest pursuers or scouts within sensing range: dx, dy, vx, vy, valid
+    ``teammates``  [K_m x 5]  the nearest other evaders within comm range: dx, dy, vx, vy, valid
+
+Missing slots (fewer neighbours than slots) are all zero with valid = 0. With ``observability = "full"``
+(what the paper trained with) every target is known with age 0 and ranges do not limit what is seen.
+
+Action: a 2-D commanded velocity normalised to [-1, 1] per axis; the world multiplies it by the role's
+``max_speed`` and limits its norm to ``max_speed``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import json
+import math
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+SPEC_FORMAT = 1
+"""Bumped whenever the meaning of a field or the observation encoding changes without a field changing."""
+
+
+class SpecError(ValueError):
+    """A spec or config value is wrong. The message names the field and says how to fix it."""
+
+
+class Role(enum.IntEnum):
+    PURSUER = 0
+    SCOUT = 1
+    EVADER = 2
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+    @classmethod
+    def parse(cls, name: str) -> "Role":
+        try:
+            return cls[name.upper()]
+        except KeyError:
+            raise SpecError(f"unknown role {name!r}: use one of {[r.label for r in cls]}") from None
+
+
+# --------------------------------------------------------------------------------------------------
+# dataclasses
+
+
+@dataclass(frozen=True)
+class ArenaSpec:
+    half_width: float = 3.0
+    """Half the side of the square arena [m]; the arena is [-half_width, half_width]^2."""
+    n_obstacles: int = 3
+    """Circular obstacles placed at random in every episode."""
+    obstacle_radius_min: float = 0.25
+    """Smallest obstacle radius [m]."""
+    obstacle_radius_max: float = 0.45
+    """Largest obstacle radius [m]."""
+    obstacle_clearance: float = 0.2
+    """Free gap kept between obstacles, and between obstacles and walls, at placement [m]. Must exceed
+    the largest agent diameter so that nobody can be wedged between two of them."""
+    start_clearance: float = 0.05
+    """Extra gap between a freshly placed agent and any obstacle or other agent [m]."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "half_width")
+        _nonnegative(self, "n_obstacles")
+        _positive(self, "obstacle_radius_min")
+        _positive(self, "obstacle_radius_max")
+        _nonnegative(self, "obstacle_clearance")
+        _nonnegative(self, "start_clearance")
+        if self.obstacle_radius_max < self.obstacle_radius_min:
+            raise SpecError(
+                f"arena.obstacle_radius_max ({self.obstacle_radius_max}) is below arena.obstacle_radius_min "
+                f"({self.obstacle_radius_min}): swap them or raise the maximum")
+        # Obstacles with their clearance must fit comfortably (at most 40% of the usable square).
+        inner = 2.0 * (self.half_width - self.obstacle_clearance)
+        need = self.n_obstacles * math.pi * (self.obstacle_radius_max + self.obstacle_clearance) ** 2
+        if self.n_obstacles and (inner <= 2 * self.obstacle_radius_max or need > 0.4 * inner * inner):
+            raise SpecError(
+                f"arena.n_obstacles: {self.n_obstacles} obstacles of radius up to {self.obstacle_radius_max} m "
+                f"with clearance {self.obstacle_clearance} m do not fit in a {2 * self.half_width} m arena "
+                f"(they would need {need:.2f} m^2 of {0.4 * inner * inner:.2f} m^2 allowed): use fewer or "
+                f"smaller obstacles")
+
+
+@dataclass(frozen=True)
+class RoleSpec:
+    radius: float
+    """Body radius [m] used for collisions and contacts."""
+    max_speed: float
+    """Largest commanded speed [m/s]; an action of norm 1 asks for this speed."""
+    max_accel: float
+    """Acceleration limit [m/s^2] of the velocity response (a position-controlled drone)."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "radius")
+        _positive(self, "max_speed")
+        _positive(self, "max_accel")
+
+
+@dataclass(frozen=True)
+class TeamSpec:
+    n_pursuers: int = 5
+    """Agents that chase the evaders."""
+    n_scouts: int = 5
+    """Pursuer-team agents rewarded for exploration (the paper's scouting pursuers)."""
+    n_evaders: int = 2
+    """Faster targets that learn to escape."""
+
+    def __post_init__(self) -> None:
+        _nonnegative(self, "n_pursuers")
+        _nonnegative(self, "n_scouts")
+        _positive(self, "n_evaders")
+        if self.n_pursuers + self.n_scouts < 1:
+            raise SpecError("team: the pursuer team is empty: set team.n_pursuers or team.n_scouts to 1 or more")
+
+    @property
+    def n_agents(self) -> int:
+        return self.n_pursuers + self.n_scouts + self.n_evaders
+
+    @property
+    def n_team(self) -> int:
+        """Pursuers plus scouts."""
+        return self.n_pursuers + self.n_scouts
+
+    def roles(self) -> tuple[Role, ...]:
+        return ((Role.PURSUER,) * self.n_pursuers + (Role.SCOUT,) * self.n_scouts
+                + (Role.EVADER,) * self.n_evaders)
+
+    def indices(self, role: Role) -> range:
+        if role is Role.PURSUER:
+            return range(0, self.n_pursuers)
+        if role is Role.SCOUT:
+            return range(self.n_pursuers, self.n_team)
+        return range(self.n_team, self.n_agents)
+
+    def agent_ids(self) -> tuple[str, ...]:
+        """Stable agent names, ``pursuer_0 ... scout_0 ... evader_0 ...``."""
+        out: list[str] = []
+        for role in Role:
+            out += [f"{role.label}_{k}" for k in range(len(self.indices(role)))]
+        return tuple(out)
+
+
+@dataclass(frozen=True)
+class SensingSpec:
+    sensing_range: float = 0.5
+    """Distance within which an agent detects another agent itself [m] (the paper's 0.5 m)."""
+    comm_range: float = 2.0
+    """Distance within which teammates exchange state and target sightings [m]."""
+    target_memory: float = 3.0
+    """A target sighting older than this is forgotten [s]."""
+    observability: str = "full"
+    """"full": every agent sees everything (what the paper trained with); "partial": targets are known
+    only through own sensing or relayed by teammates in comm range (one hop per control period), with age."""
+    n_obstacles_observed: int = 3
+    """Obstacle slots in the observation (nearest first)."""
+    n_teammates_observed: int = 4
+    """Teammate slots in the observation (nearest first)."""
+    n_threats_observed: int = 4
+    """Threat slots in an evader's observation (nearest pursuers or scouts)."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "sensing_range")
+        _positive(self, "comm_range")
+        _positive(self, "target_memory")
+        if self.observability not in ("full", "partial"):
+            raise SpecError(f"sensing.observability: {self.observability!r} is not one of 'full', 'partial'")
+        _nonnegative(self, "n_obstacles_observed")
+        _nonnegative(self, "n_teammates_observed")
+        _nonnegative(self, "n_threats_observed")
+
+
+@dataclass(frozen=True)
+class TimingSpec:
+    control_period: float = 0.1
+    """Seconds between two actions (the policy's and the world's step) [s]."""
+    episode_steps: int = 100
+    """Control periods per episode."""
+
+    def __post_init__(self) -> None:
+        _positive(self, "control_period")
+        _positive(self, "episode_steps")
+
+
+def _default_pursuer() -> RoleSpec:
+    return RoleSpec(radius=0.075, max_speed=1.0, max_accel=3.0)
+
+
+def _default_scout() -> RoleSpec:
+    return RoleSpec(radius=0.075, max_speed=1.0, max_accel=3.0)
+
+
+def _default_evader() -> RoleSpec:
+    return RoleSpec(radius=0.05, max_speed=1.3, max_accel=3.9)
+
+
+@dataclass(frozen=True)
+class SwarmSpec:
+    """Everything a trained policy depends on. Frozen; build it from TOML with ``SwarmSpec.from_toml``."""
+
+    arena: ArenaSpec = field(default_factory=ArenaSpec)
+    pursuer: RoleSpec = field(default_factory=_default_pursuer)
+    scout: RoleSpec = field(default_factory=_default_scout)
+    evader: RoleSpec = field(default_factory=_default_evader)
+    team: TeamSpec = field(default_factory=TeamSpec)
+    sensing: SensingSpec = field(default_factory=SensingSpec)
+    timing: TimingSpec = field(default_factory=TimingSpec)
+
+    def __post_init__(self) -> None:
+        biggest = max(self.pursuer.radius, self.scout.radius, self.evader.radius)
+        if self.arena.n_obstacles and self.arena.obstacle_clearance <= 2 * biggest:
+            raise SpecError(
+                f"arena.obstacle_clearance ({self.arena.obstacle_clearance} m) must exceed the largest agent "
+                f"diameter ({2 * biggest} m) so that no agent can be wedged between obstacles: raise it")
+        if self.sensing.n_obstacles_observed > self.arena.n_obstacles:
+            raise SpecError(
+                f"sensing.n_obstacles_observed ({self.sensing.n_obstacles_observed}) exceeds arena.n_obstacles "
+                f"({self.arena.n_obstacles}): lower it")
+        # agents must be placeable: their discs plus clearance use at most 25% of the free area
+        free = (2 * self.arena.half_width) ** 2 - self.arena.n_obstacles * math.pi * self.arena.obstacle_radius_max ** 2
+        bodies = sum(math.pi * (self.role(r).radius * 2 + self.arena.start_clearance) ** 2 * len(self.team.indices(r))
+                     for r in Role)
+        if bodies > 0.25 * free:
+            raise SpecError(f"team: {self.team.n_agents} agents do not fit in the arena: use fewer agents or a "
+                            f"bigger arena.half_width")
+
+    # -- lookups -------------------------------------------------------------------------------------
+    def role(self, role: Role) -> RoleSpec:
+        return (self.pursuer, self.scout, self.evader)[int(role)]
+
+    @property
+    def roles(self) -> tuple[Role, ...]:
+        return self.team.roles()
+
+    @property
+    def n_agents(self) -> int:
+        return self.team.n_agents
+
+    def per_agent(self, attr: str) -> tuple[float, ...]:
+        """``attr`` of ``RoleSpec`` for every agent in order (radius, max_speed, max_accel)."""
+        return tuple(getattr(self.role(r), attr) for r in self.roles)
+
+    def layout(self, role: Role) -> "ObsLayout":
+        return ObsLayout.for_role(self, role)
+
+    def obs_dim(self, role: Role) -> int:
+        return self.layout(role).dim
+
+    @property
+    def max_obs_dim(self) -> int:
+        return max(self.obs_dim(r) for r in set(self.roles))
+
+    act_dim: int = field(default=2, init=False, repr=False)
+
+    # -- (de)serialisation ---------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self) if f.init}
+
+    @property
+    def hash(self) -> str:
+        """12 hex digits over every field and the layout format; two specs with the same hash build the same
+        observations and mean the same actions."""
+        doc = {"format": SPEC_FORMAT, "spec": self.to_dict(),
+               "layouts": {r.label: self.layout(r).describe() for r in Role}}
+        blob = json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()
+        return hashlib.sha256(blob).hexdigest()[:12]
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str = "spec") -> "SwarmSpec":
+        return from_mapping(cls, data, where)
+
+    @classmethod
+    def from_toml(cls, path: str | Path, table: str | None = "spec") -> "SwarmSpec":
+        data = load_toml(path)
+        if table is not None:
+            data = data.get(table, {})
+        return cls.from_dict(data, where=table or "spec")
+
+
+# --------------------------------------------------------------------------------------------------
+# observation layout
+
+
+@dataclass(frozen=True)
+class ObsField:
+    name: str
+    rows: int
+    """Slots (1 for a plain vector field)."""
+    columns: tuple[str, ...]
+    """Names of the values in one slot."""
+    units: tuple[str, ...]
+    low: tuple[float, ...]
+    """Smallest value each column takes (used for random test inputs and the C export)."""
+    high: tuple[float, ...]
+    start: int = 0
+
+    @property
+    def size(self) -> int:
+        return self.rows * len(self.columns)
+
+    @property
+    def slice(self) -> slice:
+        return slice(self.start, self.start + self.size)
+
+
+@dataclass(frozen=True)
+class ObsLayout:
+    role_group: str
+    fields: tuple[ObsField, ...]
+
+    @property
+    def dim(self) -> int:
+        return sum(f.size for f in self.fields)
+
+    def __getitem__(self, name: str) -> ObsField:
+        for f in self.fields:
+            if f.name == name:
+                return f
+        raise KeyError(f"observation field {name!r} not in the {self.role_group} layout: "
+                       f"{[f.name for f in self.fields]}")
+
+    def names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.fields)
+
+    def describe(self) -> list[dict[str, Any]]:
+        return [{"name": f.name, "start": f.start, "rows": f.rows, "columns": list(f.columns),
+                 "units": list(f.units), "low": list(f.low), "high": list(f.high)} for f in self.fields]
+
+    def bounds(self) -> tuple[list[float], list[float]]:
+        """Per-index low and high of the whole observation vector."""
+        lo: list[float] = []
+        hi: list[float] = []
+        for f in self.fields:
+            lo += list(f.low) * f.rows
+            hi += list(f.high) * f.rows
+        return lo, hi
+
+    @staticmethod
+    def for_role(spec: SwarmSpec, role: Role) -> "ObsLayout":
+        hw = spec.arena.half_width
+        span = 2 * hw
+        vmax = max(spec.pursuer.max_speed, spec.scout.max_speed, spec.evader.max_speed)
+        rmax = spec.arena.obstacle_radius_max
+        mem = spec.sensing.target_memory
+        s = spec.sensing
+        agent_cols = (("dx", "dy", "vx", "vy", "valid"), ("m", "m", "m/s", "m/s", "1"),
+                      (-span, -span, -vmax, -vmax, 0.0), (span, span, vmax, vmax, 1.0))
+        own_v = spec.role(role).max_speed
+        raw = [("self_pos", 1, ("x", "y"), ("m", "m"), (-hw, -hw), (hw, hw)),
+               ("self_vel", 1, ("vx", "vy"), ("m/s", "m/s"), (-own_v, -own_v), (own_v, own_v)),
+               ("obstacles", s.n_obstacles_observed, ("dx", "dy", "radius"), ("m", "m", "m"),
+                (-span, -span, 0.0), (span, span, rmax))]
+        if role is Role.EVADER:
+            raw.append(("threats", s.n_threats_observed, *agent_cols))
+            mates = min(s.n_teammates_observed, spec.team.n_evaders - 1)
+        else:
+            ev = spec.evader.max_speed
+            raw.append(("targets", spec.team.n_evaders, ("dx", "dy", "vx", "vy", "age", "known"),
+                        ("m", "m", "m/s", "m/s", "s", "1"),
+                        (-span, -span, -ev, -ev, 0.0, 0.0), (span, span, ev, ev, mem, 1.0)))
+            mates = min(s.n_teammates_observed, spec.team.n_team - 1)
+        raw.append(("teammates", mates, *agent_cols))
+        fields: list[ObsField] = []
+        start = 0
+        for name, rows, cols, units, lo, hi in raw:
+            f = ObsField(name, rows, cols, units, tuple(float(v) for v in lo), tuple(float(v) for v in hi), start)
+            fields.append(f)
+            start += f.size
+        return ObsLayout("evader" if role is Role.EVADER else "pursuer_team", tuple(fields))
+
+
+# --------------------------------------------------------------------------------------------------
+# TOML -> frozen dataclasses, strictly
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    p = Path(path)
+    if not p.is_file():
+        raise SpecError(f"config file {str(p)!r} does not exist: check the path")
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
+
+
+def from_mapping(cls: type, data: Mapping[str, Any], where: str, base: Any = None) -> Any:
+    """Build frozen dataclass ``cls`` from ``data``; unknown keys, wrong types and impossible values raise
+    ``SpecError`` naming ``where.key``. Keys missing from ``data`` come from ``base`` (or ``cls()``)."""
+    if not isinstance(data, Mapping):
+        raise SpecError(f"{where}: expected a table, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise SpecError(f"{where}.{unknown[0]}: unknown key; valid keys are {sorted(fields)}")
+    if base is None:
+        try:
+            base = cls()
+        except TypeError:
+            base = None
+    kwargs: dict[str, Any] = {n: getattr(base, n) for n in fields} if base is not None else {}
+    for name, value in data.items():
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = from_mapping(tp, value, f"{where}.{name}", kwargs.get(name))
+        else:
+            kwargs[name] = _coerce(tp, value, f"{where}.{name}")
+    missing = sorted(set(fields) - set(kwargs))
+    if missing:
+        raise SpecError(f"{where}.{missing[0]}: missing; set it in the [{where}] table")
+    try:
+        return cls(**kwargs)
+    except SpecError as exc:
+        msg = str(exc)
+        sec = _SECTIONS.get(cls.__name__)
+        if sec and msg.startswith(sec + "."):
+            msg = where + msg[len(sec):]
+        elif not msg.startswith(where):
+            msg = f"{where}.{msg}"
+        raise SpecError(msg) from None
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return from_mapping(tp, value, where)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(args[0], value, where)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise SpecError(f"{where}: expected a list, got {type(value).__name__} {value!r}")
+        args = typing.get_args(tp)
+        inner = args[0] if args else Any
+        return tuple(_coerce(inner, v, f"{where}[{i}]") for i, v in enumerate(value))
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise SpecError(f"{where}: expected a number, got {type(value).__name__} {value!r}")
+        if not math.isfinite(value):
+            raise SpecError(f"{where}: must be finite, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SpecError(f"{where}: expected an integer, got {type(value).__name__} {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise SpecError(f"{where}: expected true or false, got {type(value).__name__} {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise SpecError(f"{where}: expected a string, got {type(value).__name__} {value!r}")
+        return value
+    return value
+
+
+def _positive(obj: Any, name: str) -> None:
+    v = getattr(obj, name)
+    if not v > 0:
+        raise SpecError(f"{_section(obj)}.{name}: must be > 0, got {v!r}")
+
+
+def _nonnegative(obj: Any, name: str) -> None:
+    v = getattr(obj, name)
+    if not v >= 0:
+        raise SpecError(f"{_section(obj)}.{name}: must be >= 0, got {v!r}")
+
+
+_SECTIONS = {"ArenaSpec": "arena", "RoleSpec": "role", "TeamSpec": "team", "SensingSpec": "sensing",
+             "TimingSpec": "timing"}
+
+
+def _section(obj: Any) -> str:
+    return _SECTIONS.get(type(obj).__name__, type(obj).__name__)
