@@ -50,6 +50,9 @@ def update_knowledge(spec: SwarmSpec, knowledge: np.ndarray, pos: np.ndarray, ve
     comm = dist[:, :nt, :nt] <= spec.sensing.comm_range  # [B, M, M], diagonal true
     seen_at = np.where(comm[..., None], knowledge[:, None, :, :, 4], -np.inf)  # [B, recv, src, E]
     src = seen_at.argmax(axis=2)  # [B, recv, E]
+    own = np.arange(nt)[None, :, None]
+    # keep one's own entry unless a neighbour's is strictly fresher (argmax of all -inf would pick agent 0)
+    src = np.where(np.take_along_axis(seen_at, src[:, :, None], axis=2)[:, :, 0] > knowledge[..., 4], src, own)
     merged = np.take_along_axis(knowledge, src[..., None], axis=1)  # gathers knowledge[b, src, e]
     knowledge[:] = merged
     # own sensing overrides
@@ -149,7 +152,7 @@ def encode_observations(spec: SwarmSpec, pos: np.ndarray, vel: np.ndarray, obsta
         lay = spec.layout(role)
         p = pos[:, who]
         parts = [p, vel[:, who],
-                 _obstacle_slots(p, obstacle_pos, obstacle_radius, s.n_obstacles_observed).reshape(b, who.size, -1)]
+                 _obstacle_slots(p, obstacle_pos, obstacle_radius, lay["obstacles"].rows).reshape(b, who.size, -1)]
         d = dist[:, who]  # [B, M, N]
         vis = visible[:, who]
         if group_team:

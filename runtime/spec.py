@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import hashlib
 import json
 import math
@@ -183,7 +184,7 @@ class SensingSpec:
     """"full": every agent sees everything (what the paper trained with); "partial": targets are known
     only through own sensing or relayed by teammates in comm range (one hop per control period), with age."""
     n_obstacles_observed: int = 3
-    """Obstacle slots in the observation (nearest first)."""
+    """Obstacle slots in the observation (nearest first); at most arena.n_obstacles are used."""
     n_teammates_observed: int = 4
     """Teammate slots in the observation (nearest first)."""
     n_threats_observed: int = 4
@@ -242,10 +243,6 @@ class SwarmSpec:
             raise SpecError(
                 f"arena.obstacle_clearance ({self.arena.obstacle_clearance} m) must exceed the largest agent "
                 f"diameter ({2 * biggest} m) so that no agent can be wedged between obstacles: raise it")
-        if self.sensing.n_obstacles_observed > self.arena.n_obstacles:
-            raise SpecError(
-                f"sensing.n_obstacles_observed ({self.sensing.n_obstacles_observed}) exceeds arena.n_obstacles "
-                f"({self.arena.n_obstacles}): lower it")
         # agents must be placeable: their discs plus clearance use at most 25% of the free area
         free = (2 * self.arena.half_width) ** 2 - self.arena.n_obstacles * math.pi * self.arena.obstacle_radius_max ** 2
         bodies = sum(math.pi * (self.role(r).radius * 2 + self.arena.start_clearance) ** 2 * len(self.team.indices(r))
@@ -271,7 +268,7 @@ class SwarmSpec:
         return tuple(getattr(self.role(r), attr) for r in self.roles)
 
     def layout(self, role: Role) -> "ObsLayout":
-        return ObsLayout.for_role(self, role)
+        return _layout(self, Role(role))
 
     def obs_dim(self, role: Role) -> int:
         return self.layout(role).dim
@@ -378,7 +375,8 @@ class ObsLayout:
         own_v = spec.role(role).max_speed
         raw = [("self_pos", 1, ("x", "y"), ("m", "m"), (-hw, -hw), (hw, hw)),
                ("self_vel", 1, ("vx", "vy"), ("m/s", "m/s"), (-own_v, -own_v), (own_v, own_v)),
-               ("obstacles", s.n_obstacles_observed, ("dx", "dy", "radius"), ("m", "m", "m"),
+               ("obstacles", min(s.n_obstacles_observed, spec.arena.n_obstacles), ("dx", "dy", "radius"),
+                ("m", "m", "m"),
                 (-span, -span, 0.0), (span, span, rmax))]
         if role is Role.EVADER:
             raw.append(("threats", s.n_threats_observed, *agent_cols))
@@ -397,6 +395,11 @@ class ObsLayout:
             fields.append(f)
             start += f.size
         return ObsLayout("evader" if role is Role.EVADER else "pursuer_team", tuple(fields))
+
+
+@functools.lru_cache(maxsize=64)
+def _layout(spec: SwarmSpec, role: Role) -> ObsLayout:
+    return ObsLayout.for_role(spec, role)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -165,7 +165,7 @@ class World:
 
     def step(self, actions: np.ndarray) -> np.ndarray:
         """Advance every env by one control period. Returns the agent-agent contact matrix ``[B, N, N]``
-        (symmetric, false on the diagonal)."""
+        (symmetric, false on the diagonal); the distances behind it stay in ``last_distances``."""
         a = self.sanitize_actions(actions)
         s = self.state
         dt = self.dt
@@ -183,7 +183,8 @@ class World:
         self._resolve_obstacles()
         self._resolve_walls()
         s.step += 1
-        return self.contacts()
+        self.last_distances = self.distances()
+        return self.contacts(self.last_distances)
 
     def _resolve_walls(self) -> None:
         s = self.state
