@@ -50,10 +50,14 @@ _STOP_MARGIN = 1.0 + 1e-9
 
 
 @njit(cache=True, fastmath=False)
-def _cell(pts, b, i, hw, key, idx, fv, xs, ys, xt, yt):
-    """Area and centroid ``(area, cx, cy)`` of cell ``i`` of env ``b``; the other arguments are scratch."""
+def _cell(pts, b, i, hw, key, idx, fv, bx, by):
+    """Area and centroid ``(area, cx, cy)`` of cell ``i`` of env ``b``; the other arguments are scratch.
+
+    ``bx, by`` hold two vertex buffers of ``cap`` slots each, at offsets 0 and ``cap``: each clip reads one
+    and writes the other (offsets, not swapped array variables, which would cost reference counting).
+    """
     n = pts.shape[1]
-    cap = xs.shape[0]
+    cap = bx.shape[0] // 2
     pix = pts[b, i, 0]
     piy = pts[b, i, 1]
     mult = 1
@@ -76,86 +80,93 @@ def _cell(pts, b, i, hw, key, idx, fv, xs, ys, xt, yt):
         idx[k] = j
         m += 1
 
-    xs[0] = -hw
-    ys[0] = -hw
-    xs[1] = hw
-    ys[1] = -hw
-    xs[2] = hw
-    ys[2] = hw
-    xs[3] = -hw
-    ys[3] = hw
+    bx[0] = -hw
+    by[0] = -hw
+    bx[1] = hw
+    by[1] = -hw
+    bx[2] = hw
+    by[2] = hw
+    bx[3] = -hw
+    by[3] = hw
+    src = 0
     nv = 4
-    r2max = 0.0
-    for v in range(nv):
-        r2 = (xs[v] - pix) ** 2 + (ys[v] - piy) ** 2
-        if r2 > r2max:
-            r2max = r2
+    ex = hw + abs(pix)
+    ey = hw + abs(piy)
+    r2max = ex * ex + ey * ey
 
     for k in range(m):
+        if 0.25 * key[k] > r2max * _STOP_MARGIN:
+            break
         j = idx[k]
         qx = pts[b, j, 0]
         qy = pts[b, j, 1]
         dx = qx - pix
         dy = qy - piy
-        length = math.hypot(dx, dy)
-        half = 0.5 * length
-        if half * half > r2max * _STOP_MARGIN:
-            break
-        nx = dx / length
-        ny = dy / length
+        length = math.sqrt(key[k])
+        if not length > 1e-150:
+            length = math.hypot(dx, dy)  # dx * dx + dy * dy underflowed
+        inv = 1.0 / length
+        nx = dx * inv
+        ny = dy * inv
         c = nx * (0.5 * (pix + qx)) + ny * (0.5 * (piy + qy))
         fmax = -np.inf
         for v in range(nv):
-            f = nx * xs[v] + ny * ys[v] - c
+            f = nx * bx[src + v] + ny * by[src + v] - c
             fv[v] = f
             if f > fmax:
                 fmax = f
         if fmax <= 0.0:
             continue
+        dst = cap - src
         out = 0
+        r2max = 0.0
         for v in range(nv):
             w = v + 1 if v + 1 < nv else 0
             fa = fv[v]
             fb = fv[w]
+            ax = bx[src + v]
+            ay = by[src + v]
             if fa <= 0.0 and out < cap:
-                xt[out] = xs[v]
-                yt[out] = ys[v]
+                bx[dst + out] = ax
+                by[dst + out] = ay
                 out += 1
+                ex = ax - pix
+                ey = ay - piy
+                r2max = max(r2max, ex * ex + ey * ey)
             # Strict signs: a vertex lying on the line is kept once, never doubled by a zero-length cut.
             if ((fa < 0.0 and fb > 0.0) or (fa > 0.0 and fb < 0.0)) and out < cap:
                 t = fa / (fa - fb)
-                xt[out] = xs[v] + t * (xs[w] - xs[v])
-                yt[out] = ys[v] + t * (ys[w] - ys[v])
+                ax = ax + t * (bx[src + w] - ax)
+                ay = ay + t * (by[src + w] - ay)
+                bx[dst + out] = ax
+                by[dst + out] = ay
                 out += 1
-        xs, xt = xt, xs
-        ys, yt = yt, ys
+                ex = ax - pix
+                ey = ay - piy
+                r2max = max(r2max, ex * ex + ey * ey)
+        src = dst
         nv = out
         if nv < 3:
             break
-        r2max = 0.0
-        for v in range(nv):
-            r2 = (xs[v] - pix) ** 2 + (ys[v] - piy) ** 2
-            if r2 > r2max:
-                r2max = r2
 
     a2 = 0.0
     sx = 0.0
     sy = 0.0
     if nv >= 3:
-        x0 = xs[0]
-        y0 = ys[0]
+        x0 = bx[src]
+        y0 = by[src]
         for v in range(1, nv - 1):
-            ux = xs[v] - x0
-            uy = ys[v] - y0
-            wx = xs[v + 1] - x0
-            wy = ys[v + 1] - y0
+            ux = bx[src + v] - x0
+            uy = by[src + v] - y0
+            wx = bx[src + v + 1] - x0
+            wy = by[src + v + 1] - y0
             cr = ux * wy - uy * wx
             a2 += cr
             sx += cr * (ux + wx)
             sy += cr * (uy + wy)
     if a2 > 0.0:
-        cx = xs[0] + sx / (3.0 * a2)
-        cy = ys[0] + sy / (3.0 * a2)
+        cx = bx[src] + sx / (3.0 * a2)
+        cy = by[src] + sy / (3.0 * a2)
         area = 0.5 * a2 / mult
     else:
         cx = pix
@@ -175,14 +186,12 @@ def _run_cells(pts, hw, areas, cents, want_centroids, start, stop):
     key = np.empty(n)
     idx = np.empty(n, dtype=np.int64)
     fv = np.empty(cap)
-    xs = np.empty(cap)
-    ys = np.empty(cap)
-    xt = np.empty(cap)
-    yt = np.empty(cap)
+    bx = np.empty(2 * cap)
+    by = np.empty(2 * cap)
     for cell in range(start, stop):
         b = cell // n
         i = cell - b * n
-        area, cx, cy = _cell(pts, b, i, hw, key, idx, fv, xs, ys, xt, yt)
+        area, cx, cy = _cell(pts, b, i, hw, key, idx, fv, bx, by)
         areas[b, i] = area
         if want_centroids:
             cents[b, i, 0] = cx
