@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from runtime.spec import Role, SwarmSpec
+from runtime.world import pairwise_distances  # noqa: F401  (re-exported for callers)
 
 SIGHTING = 5
 """Values per sighting: x [m], y [m], vx [m/s], vy [m/s], t_seen [s] (-inf: never seen)."""
@@ -26,11 +27,6 @@ def new_knowledge(spec: SwarmSpec, n_envs: int) -> np.ndarray:
     k = np.zeros((n_envs, spec.team.n_team, spec.team.n_evaders, SIGHTING))
     k[..., 4] = -np.inf
     return k
-
-
-def pairwise_distances(pos: np.ndarray) -> np.ndarray:
-    d = pos[:, :, None, :] - pos[:, None, :, :]
-    return np.sqrt((d * d).sum(-1))
 
 
 def update_knowledge(spec: SwarmSpec, knowledge: np.ndarray, pos: np.ndarray, vel: np.ndarray,
@@ -70,45 +66,42 @@ def merge_sightings(knowledge: np.ndarray, incoming: np.ndarray) -> np.ndarray:
 
 
 def _nearest(dist: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of the ``k`` smallest along the last axis, and whether each is finite (valid)."""
+    """Indices of the ``k`` smallest along the last axis (ties: lower index first), and whether each is
+    finite (valid). Slots beyond the axis length are invalid."""
     n = dist.shape[-1]
+    shape = dist.shape[:-1] + (k,)
     if k == 0 or n == 0:
-        shape = dist.shape[:-1] + (k,)
         return np.zeros(shape, dtype=np.int64), np.zeros(shape, dtype=bool)
     kk = min(k, n)
     idx = np.argsort(dist, axis=-1, kind="stable")[..., :kk]
     valid = np.isfinite(np.take_along_axis(dist, idx, axis=-1))
     if kk < k:
-        pad = dist.shape[:-1] + (k - kk,)
-        idx = np.concatenate([idx, np.zeros(pad, dtype=np.int64)], axis=-1)
-        valid = np.concatenate([valid, np.zeros(pad, dtype=bool)], axis=-1)
+        idx = np.concatenate([idx, np.zeros(shape[:-1] + (k - kk,), dtype=np.int64)], axis=-1)
+        valid = np.concatenate([valid, np.zeros(shape[:-1] + (k - kk,), dtype=bool)], axis=-1)
     return idx, valid
 
 
-def _agent_slots(pos_o: np.ndarray, others_pos: np.ndarray, others_vel: np.ndarray, dist: np.ndarray,
-                 k: int) -> np.ndarray:
-    """[B, M, k, 5] = dx, dy, vx, vy, valid for the k nearest finite entries of ``dist`` [B, M, O]."""
-    idx, valid = _nearest(dist, k)
-    b, m = dist.shape[:2]
-    bi = np.arange(b)[:, None, None]
-    rel = others_pos[bi, idx] - pos_o[:, :, None, :]
-    v = others_vel[bi, idx]
-    out = np.concatenate([rel, v, np.ones(idx.shape + (1,))], axis=-1)
-    out *= valid[..., None]
-    return out
+def _field(block: np.ndarray, lay, name: str) -> np.ndarray:
+    """View ``[B, M, rows, cols]`` of one field inside ``block`` ``[B, M, D]``."""
+    f = lay[name]
+    return block[..., f.start:f.start + f.size].reshape(block.shape[:2] + (f.rows, len(f.columns)))
 
 
-def _obstacle_slots(pos_o: np.ndarray, obstacle_pos: np.ndarray, obstacle_radius: np.ndarray,
-                    k: int) -> np.ndarray:
-    b, m = pos_o.shape[:2]
+def _fill_agents(view: np.ndarray, ox: np.ndarray, oy: np.ndarray, px: np.ndarray, py: np.ndarray,
+                 vx: np.ndarray, vy: np.ndarray, dist: np.ndarray) -> None:
+    """Fill ``view`` [B, M, k, 5] with dx, dy, vx, vy, valid of the k nearest finite entries of ``dist``
+    [B, M, O]; observers at ``ox, oy`` [B, M], others' components ``px ... vy`` [B, O]."""
+    k = view.shape[2]
     if k == 0:
-        return np.zeros((b, m, 0, 3))
-    d = obstacle_pos[:, None, :, :] - pos_o[:, :, None, :]  # [B, M, K, 2]
-    surface = np.sqrt((d * d).sum(-1)) - obstacle_radius[:, None, :]
-    idx = np.argsort(surface, axis=-1, kind="stable")[..., :k]
-    rel = np.take_along_axis(d, idx[..., None], axis=2)
-    r = np.take_along_axis(np.broadcast_to(obstacle_radius[:, None, :], surface.shape), idx, axis=2)
-    return np.concatenate([rel, r[..., None]], axis=-1)
+        return
+    idx, valid = _nearest(dist, k)
+    take = lambda a: np.take_along_axis(a[:, None, :], idx, axis=2)  # noqa: E731
+    view[..., 0] = take(px) - ox[..., None]
+    view[..., 1] = take(py) - oy[..., None]
+    view[..., 2] = take(vx)
+    view[..., 3] = take(vy)
+    view[..., 4] = 1.0
+    view *= valid[..., None]
 
 
 def encode_observations(spec: SwarmSpec, pos: np.ndarray, vel: np.ndarray, obstacle_pos: np.ndarray,
@@ -130,56 +123,68 @@ def encode_observations(spec: SwarmSpec, pos: np.ndarray, vel: np.ndarray, obsta
     dim = spec.max_obs_dim
     if out is None:
         out = np.zeros((b, obs_idx.size, dim))
-    else:
-        out[:] = 0.0
     if dist is None:
         dist = pairwise_distances(pos)
-    if visible is None:
-        if s.observability == "full":
-            visible = np.ones((b, n, n), dtype=bool)
-        else:
-            rng = np.full((n, n), s.comm_range)
-            rng[:nt, nt:] = s.sensing_range  # the pursuer team sees evaders by sensing (relay is in knowledge)
-            rng[nt:, :nt] = s.sensing_range  # evaders see threats by sensing only
-            visible = dist <= rng[None]
+    full = s.observability == "full"
+    if visible is None and not full:
+        rng = np.full((n, n), s.comm_range)
+        rng[:nt, nt:] = s.sensing_range  # the pursuer team sees evaders by sensing (relay is in knowledge)
+        rng[nt:, :nt] = s.sensing_range  # evaders see threats by sensing only
+        visible = dist <= rng[None]
+    px, py = np.ascontiguousarray(pos[..., 0]), np.ascontiguousarray(pos[..., 1])
+    vx, vy = np.ascontiguousarray(vel[..., 0]), np.ascontiguousarray(vel[..., 1])
     t = np.broadcast_to(np.asarray(time_s, dtype=np.float64), (b,))
     for group_team in (True, False):
         sel = np.nonzero((obs_idx < nt) if group_team else (obs_idx >= nt))[0]
         if sel.size == 0:
             continue
         who = obs_idx[sel]
-        role = Role.PURSUER if group_team else Role.EVADER
-        lay = spec.layout(role)
-        p = pos[:, who]
-        parts = [p, vel[:, who],
-                 _obstacle_slots(p, obstacle_pos, obstacle_radius, lay["obstacles"].rows).reshape(b, who.size, -1)]
+        m = who.size
+        lay = spec.layout(Role.PURSUER if group_team else Role.EVADER)
+        contiguous = sel[-1] - sel[0] + 1 == m
+        block = out[:, sel[0]:sel[-1] + 1] if contiguous else np.empty((b, m, dim))
+        block[..., lay.dim:] = 0.0
+        ox, oy = px[:, who], py[:, who]
+        me = _field(block, lay, "self_pos")
+        me[..., 0, 0], me[..., 0, 1] = ox, oy
+        mv = _field(block, lay, "self_vel")
+        mv[..., 0, 0], mv[..., 0, 1] = vx[:, who], vy[:, who]
+        ob = _field(block, lay, "obstacles")
+        k_obs = ob.shape[2]
+        if k_obs:
+            dxo = obstacle_pos[:, None, :, 0] - ox[..., None]
+            dyo = obstacle_pos[:, None, :, 1] - oy[..., None]
+            rad = np.broadcast_to(obstacle_radius[:, None, :], dxo.shape)
+            order = np.argsort(np.sqrt(dxo * dxo + dyo * dyo) - rad, axis=-1, kind="stable")[..., :k_obs]
+            ob[..., 0] = np.take_along_axis(dxo, order, axis=-1)
+            ob[..., 1] = np.take_along_axis(dyo, order, axis=-1)
+            ob[..., 2] = np.take_along_axis(rad, order, axis=-1)
         d = dist[:, who]  # [B, M, N]
-        vis = visible[:, who]
+        rows = np.arange(m)
         if group_team:
             kn = knowledge[:, who]  # [B, M, E, 5]
             age = t[:, None, None] - kn[..., 4]
             known = age < s.target_memory
-            tgt = np.empty(kn.shape[:3] + (6,))
-            tgt[..., 0:2] = kn[..., 0:2] - p[:, :, None, :]
-            tgt[..., 2:4] = kn[..., 2:4]
-            tgt[..., 4] = np.minimum(age, s.target_memory)
-            tgt[..., 5] = 1.0
-            tgt *= known[..., None]
-            tgt[..., 4] = np.where(known, tgt[..., 4], s.target_memory)
-            parts.append(tgt.reshape(b, who.size, -1))
-            mates = np.where(vis[:, :, :nt], d[:, :, :nt], np.inf)
-            mates[:, np.arange(who.size), who] = np.inf  # not oneself
-            parts.append(_agent_slots(p, pos[:, :nt], vel[:, :nt], mates,
-                                      lay["teammates"].rows).reshape(b, who.size, -1))
+            tg = _field(block, lay, "targets")
+            tg[..., 0] = kn[..., 0] - ox[..., None]
+            tg[..., 1] = kn[..., 1] - oy[..., None]
+            tg[..., 2:4] = kn[..., 2:4]
+            tg[..., 4] = np.minimum(age, s.target_memory)
+            tg[..., 5] = 1.0
+            tg *= known[..., None]
+            tg[..., 4] += np.where(known, 0.0, s.target_memory)
+            mates = d[:, :, :nt].copy() if full else np.where(visible[:, who, :nt], d[:, :, :nt], np.inf)
+            mates[:, rows, who] = np.inf  # not oneself
+            _fill_agents(_field(block, lay, "teammates"), ox, oy, px[:, :nt], py[:, :nt], vx[:, :nt], vy[:, :nt],
+                         mates)
         else:
-            threats = np.where(vis[:, :, :nt], d[:, :, :nt], np.inf)
-            parts.append(_agent_slots(p, pos[:, :nt], vel[:, :nt], threats,
-                                      lay["threats"].rows).reshape(b, who.size, -1))
-            mates = np.where(vis[:, :, nt:], d[:, :, nt:], np.inf)
-            mates[:, np.arange(who.size), who - nt] = np.inf
-            parts.append(_agent_slots(p, pos[:, nt:], vel[:, nt:], mates,
-                                      lay["teammates"].rows).reshape(b, who.size, -1))
-        block = np.concatenate(parts, axis=-1)
-        assert block.shape[-1] == lay.dim, (block.shape, lay.dim)
-        out[:, sel, :lay.dim] = block
+            threats = d[:, :, :nt] if full else np.where(visible[:, who, :nt], d[:, :, :nt], np.inf)
+            _fill_agents(_field(block, lay, "threats"), ox, oy, px[:, :nt], py[:, :nt], vx[:, :nt], vy[:, :nt],
+                         threats)
+            mates = d[:, :, nt:].copy() if full else np.where(visible[:, who, nt:], d[:, :, nt:], np.inf)
+            mates[:, rows, who - nt] = np.inf
+            _fill_agents(_field(block, lay, "teammates"), ox, oy, px[:, nt:], py[:, nt:], vx[:, nt:], vy[:, nt:],
+                         mates)
+        if not contiguous:
+            out[:, sel] = block
     return out
