@@ -1,0 +1,54 @@
+"""``swarm-export c``: write ``policy.h`` and ``policy.c`` for one ONNX actor (the file-writing shell around
+``cgen``), and the reference the generated C is checked against."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from firmware_export.cgen import CSources, dequantized, generate
+from firmware_export.mlp_graph import ActorModel, Dense, read_actor
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CExport:
+    model: ActorModel
+    sources: CSources
+    header: Path
+    source: Path
+    quant: str
+    tanh: str
+
+
+def export_c(model_path: str | Path, out_dir: str | Path, quant: str = "float", tanh: str = "fast",
+             spec_toml: str | Path | None = None, role: str | None = None) -> CExport:
+    model = read_actor(model_path, spec_toml=spec_toml, role=role)
+    sources = generate(model, quant=quant, tanh=tanh)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    header, source = out / "policy.h", out / "policy.c"
+    header.write_text(sources.header)
+    source.write_text(sources.source)
+    log.info("wrote %s and %s (%s, %d weight bytes)", header, source, quant, sources.weight_bytes)
+    return CExport(model, sources, header, source, quant, tanh)
+
+
+def mlp_forward(layers: tuple[Dense, ...], obs: np.ndarray) -> np.ndarray:
+    """float64 forward pass of ``layers`` on ``obs`` [B, in] (the reference for the quantized C)."""
+    x = np.asarray(obs, dtype=np.float64)
+    for d in layers:
+        x = x @ d.weight.astype(np.float64).T + d.bias.astype(np.float64)
+        if d.activation == "relu":
+            x = np.maximum(x, 0.0)
+        elif d.activation == "tanh":
+            x = np.tanh(x)
+    return x
+
+
+def reference_layers(export: CExport) -> tuple[Dense, ...]:
+    """The layers the generated C computes (dequantized for ``int8w``)."""
+    return dequantized(export.model.layers) if export.quant == "int8w" else export.model.layers

@@ -1,0 +1,212 @@
+"""Run the Cortex-M4 build of ``swarm_policy_act`` in an emulator (unicorn, Cortex-M4 model) and estimate
+its cycles.
+
+Instructions are counted as executed (a unicorn code hook records every address). Cycles come from the
+Cortex-M4 Technical Reference Manual's timing tables (ARM DDI 0439, Table 3-1 for the integer core, Table 7-1
+for the FPU), applied to each executed instruction:
+
+==============================================  ==========================================================
+class                                           cycles
+==============================================  ==========================================================
+ALU, MOV, compare, shifts, extends, IT, NOP     1
+MUL, SMLAD, SMLA*, SMUL*, SXTB16                1;  MLA, MLS 2;  SDIV, UDIV 12 (worst case)
+LDR*, STR* (one register)                       2   (no credit for pipelined neighbours: conservative)
+LDM, STM, PUSH, POP (N registers)               1 + N   (+P when PC is loaded)
+branch (B, BL, BX, CBZ, ...), taken              1 + P, P = 2 (pipeline refill, TRM range 1-3)
+branch not taken                                1
+VADD, VSUB, VMUL, VNEG, VABS, VCMP, VCVT, VMOV  1   (VMOV of two core registers 2)
+VMRS, VMSR                                      1
+VMLA, VMLS, VFMA, VFMS, VNMLA, ... (MAC)         3
+VDIV, VSQRT                                     14
+VLDR, VSTR                                      2   (.64: 3)
+VLDM, VSTM, VPUSH, VPOP (N words)               1 + N
+==============================================  ==========================================================
+
+The model assumes zero-wait-state memory (SRAM or CCM, or flash with the ART accelerator hitting). Weights
+read from the STM32F405's flash at 168 MHz (5 wait states, 128-bit lines, 8-line data cache) can cost up to 5
+more cycles per 16 bytes read; ``flash_penalty_cycles`` gives that bound separately.
+"""
+from __future__ import annotations
+
+import re
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from firmware_export.mlp_graph import CExportError
+from firmware_export.toolchain import (ARM_GCC, FLASH_BASE, RAM_BASE, SectionSizes, compile_m4_object, link_m4_elf,
+                                       object_sizes)
+
+CLOCK_HZ = 168_000_000
+"""STM32F405 core clock on the Crazyflie 2.x."""
+REFILL = 2
+"""P: pipeline refill cycles after a taken branch (TRM: 1 to 3)."""
+FLASH_WAIT_STATES = 5
+"""STM32F405 flash latency at 168 MHz and 3.3 V (RM0090, Table 10)."""
+FLASH_LINE_BYTES = 16
+_RETURN = 0x0810_0000
+_OBS_ADDR = RAM_BASE + 0x1000
+_ACT_ADDR = RAM_BASE + 0x2000
+_STACK_TOP = RAM_BASE + 0x2_0000
+_BRANCHES = re.compile(r"^(b|bl|blx|bx|cbz|cbnz|tbb|tbh)(eq|ne|cs|hs|cc|lo|mi|pl|vs|vc|hi|ls|ge|lt|gt|le|al)?"
+                       r"(\.n|\.w)?$")
+
+
+class EmulatorError(CExportError):
+    """The emulator (unicorn) is missing or the M4 build did not run to completion."""
+
+
+@dataclass(frozen=True)
+class Instr:
+    size: int
+    mnemonic: str
+    operands: str
+
+
+@dataclass(frozen=True)
+class M4Run:
+    act: np.ndarray
+    instructions: int
+    cycles: int
+    by_class: dict[str, tuple[int, int]]
+    """Instruction class -> (executed instructions, cycles)."""
+
+
+@dataclass(frozen=True)
+class M4Build:
+    elf: Path
+    obj: Path
+    sizes: SectionSizes
+    entry: int
+    flash: bytes
+    listing: dict[int, Instr]
+
+
+def build(c_file: Path, work: Path) -> M4Build:
+    """Compile and link ``c_file`` (a generated policy.c beside its policy.h) for the Cortex-M4."""
+    work.mkdir(parents=True, exist_ok=True)
+    obj = compile_m4_object(c_file, work / "policy_m4.o", include=(c_file.parent,))
+    elf = link_m4_elf([obj], work / "policy_m4.elf")
+    tool = ARM_GCC.replace("gcc", "")
+    flash = work / "policy_m4_flash.bin"
+    subprocess.run([tool + "objcopy", "-O", "binary", "-j", ".text", "-j", ".rodata", str(elf), str(flash)],
+                   check=True, capture_output=True)
+    nm = subprocess.run([tool + "nm", str(elf)], check=True, capture_output=True, text=True).stdout
+    syms = {p[2]: int(p[0], 16) for p in (line.split() for line in nm.splitlines()) if len(p) == 3}
+    dis = subprocess.run([tool + "objdump", "-d", str(elf)], check=True, capture_output=True, text=True).stdout
+    return M4Build(elf, obj, object_sizes(obj), syms["swarm_policy_act"], flash.read_bytes(), parse_listing(dis))
+
+
+def parse_listing(objdump: str) -> dict[int, Instr]:
+    """address -> instruction from ``objdump -d`` text."""
+    out: dict[int, Instr] = {}
+    for line in objdump.splitlines():
+        m = re.match(r"^\s*([0-9a-f]+):\t([0-9a-f ]+?)\s*\t(\S+)\s*([^@;]*)", line)
+        if not m or m.group(3).startswith("."):
+            continue
+        nbytes = sum(len(h) // 2 for h in m.group(2).split())
+        out[int(m.group(1), 16)] = Instr(nbytes, m.group(3), m.group(4).strip())
+    return out
+
+
+def _reglist_words(ops: str) -> int:
+    inner = ops[ops.index("{") + 1:ops.index("}")]
+    n = 0
+    for part in inner.split(","):
+        part = part.strip()
+        if "-" in part:
+            a, b = part.split("-")
+            n_regs = int(b[1:]) - int(a[1:]) + 1
+        else:
+            n_regs, a = 1, part
+        n += n_regs * (2 if a.startswith("d") else 1)
+    return n
+
+
+def instr_cycles(ins: Instr, taken: bool) -> tuple[str, int]:
+    """(class, cycles) of one executed instruction under the model in this module's docstring."""
+    m, ops = ins.mnemonic.lower(), ins.operands.lower()
+    base = m.split(".")[0]
+    if base.startswith("v"):
+        if base in ("vldmia", "vldmdb", "vldm", "vstmia", "vstmdb", "vstm", "vpush", "vpop"):
+            return "fp load/store multiple", 1 + _reglist_words(ops)
+        if base in ("vldr", "vstr"):
+            return "fp load/store", 3 if ops.startswith("d") else 2
+        if base in ("vmla", "vmls", "vnmla", "vnmls", "vfma", "vfms", "vfnma", "vfnms"):
+            return "fp multiply-accumulate", 3
+        if base in ("vdiv", "vsqrt"):
+            return "fp divide/sqrt", 14
+        if base == "vmov" and ops.count(",") >= 2:
+            return "fp move", 2
+        return "fp arithmetic/move", 1
+    if _BRANCHES.match(m) or (base in ("pop", "ldm", "ldmia") and "pc" in ops) or (
+            base.startswith("ldr") and ops.startswith("pc")):
+        if base in ("pop", "ldm", "ldmia"):
+            return "branch", 1 + _reglist_words(ops) + (REFILL if taken else 0)
+        return "branch", 1 + (REFILL if taken else 0)
+    if base in ("ldm", "ldmia", "ldmdb", "stm", "stmia", "stmdb", "push", "pop"):
+        return "load/store multiple", 1 + _reglist_words(ops)
+    if base.startswith(("ldr", "str")):
+        return "load/store", 2
+    if base in ("mla", "mls"):
+        return "multiply", 2
+    if base in ("sdiv", "udiv"):
+        return "divide", 12
+    if base.startswith(("mul", "smla", "smul", "smlad", "umull", "smull")):
+        return "multiply", 1
+    return "integer", 1
+
+
+def run(b: M4Build, obs: np.ndarray, act_dim: int = 2, count: bool = True) -> M4Run:
+    """One call of ``swarm_policy_act(obs, act)`` on the emulated Cortex-M4."""
+    try:
+        from unicorn import UC_ARCH_ARM, UC_HOOK_CODE, UC_MODE_MCLASS, UC_MODE_THUMB, Uc, UcError
+        from unicorn import arm_const as ac
+    except ImportError:
+        raise EmulatorError("the unicorn emulator is not installed: pip install unicorn "
+                            "(it is in the project's dev extra)") from None
+    uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB | UC_MODE_MCLASS)
+    uc.ctl_set_cpu_model(ac.UC_CPU_ARM_CORTEX_M4)
+    uc.mem_map(FLASH_BASE, 1 << 20)
+    uc.mem_map(RAM_BASE, 128 << 10)
+    uc.mem_map(_RETURN, 0x1000)
+    uc.mem_write(FLASH_BASE, b.flash)
+    uc.mem_write(_OBS_ADDR, np.ascontiguousarray(obs, dtype=np.float32).tobytes())
+    uc.reg_write(ac.UC_ARM_REG_R0, _OBS_ADDR)
+    uc.reg_write(ac.UC_ARM_REG_R1, _ACT_ADDR)
+    uc.reg_write(ac.UC_ARM_REG_SP, _STACK_TOP)
+    uc.reg_write(ac.UC_ARM_REG_LR, _RETURN | 1)
+    trace: list[int] = []
+    if count:
+        uc.hook_add(UC_HOOK_CODE, lambda _uc, addr, _size, _data: trace.append(addr))
+    try:
+        uc.emu_start(b.entry | 1, _RETURN, count=5_000_000)
+    except UcError as exc:
+        raise EmulatorError(f"the M4 build faulted at {uc.reg_read(ac.UC_ARM_REG_PC):#x}: {exc}") from None
+    if uc.reg_read(ac.UC_ARM_REG_PC) & ~1 != _RETURN:
+        raise EmulatorError("swarm_policy_act did not return within 5,000,000 instructions")
+    act = np.frombuffer(bytes(uc.mem_read(_ACT_ADDR, 4 * act_dim)), np.float32).copy()
+    by_class: dict[str, list[int]] = {}
+    total = 0
+    for i, addr in enumerate(trace):
+        ins = b.listing.get(addr)
+        if ins is None:
+            raise EmulatorError(f"executed address {addr:#x} is not in the disassembly of {b.elf}")
+        nxt = trace[i + 1] if i + 1 < len(trace) else _RETURN
+        cls, cyc = instr_cycles(ins, taken=nxt != addr + ins.size)
+        slot = by_class.setdefault(cls, [0, 0])
+        slot[0] += 1
+        slot[1] += cyc
+        total += cyc
+    return M4Run(act, len(trace), total, {k: (v[0], v[1]) for k, v in sorted(by_class.items())})
+
+
+def flash_penalty_cycles(table_bytes: int) -> int:
+    """Upper bound of extra cycles per inference when every weight line comes from flash with wait states."""
+    return FLASH_WAIT_STATES * -(-table_bytes // FLASH_LINE_BYTES)
+
+
+def micros(cycles: int) -> float:
+    return cycles / CLOCK_HZ * 1e6
