@@ -162,18 +162,23 @@ def _kernel(width: int, activation: str, quant: str) -> tuple[str, str]:
 
 
 def _m4_asm_loop8() -> list[str]:
-    """The 8-neuron inner loop in Thumb-2/VFPv4: VLDM streams the 8 weights in 9 cycles where 8 VLDR take 16,
-    and VMUL + VADD (1 + 1 cycles) beat VFMA (3) on the Cortex-M4; products and sums never wait on each other."""
+    """The 8-neuron inner loop in Thumb-2/VFPv4, two inputs per iteration: VLDM streams 8 weights in 9 cycles
+    where 8 VLDR take 16, and VMUL + VADD (1 + 1 cycles) beat VFMA (3) on the Cortex-M4; no instruction waits on
+    the one before it."""
     acc = [f"a{k}" for k in range(8)]
-    body = ['"1:\\n\\t"', '"vldmia %[xp]!, {s8}\\n\\t"', '"vldmia %[w]!, {s0-s7}\\n\\t"']
-    body += [f'"vmul.f32 s{k}, s{k}, s8\\n\\t"' for k in range(8)]
-    body += [f'"vadd.f32 %[{a}], %[{a}], s{k}\\n\\t"' for k, a in enumerate(acc)]
-    body += ['"subs %[n], %[n], #1\\n\\t"', '"bne 1b\\n\\t"']
+
+    def step(xreg: str) -> list[str]:
+        return (['"vldmia %[w]!, {s0-s7}\\n\\t"'] + [f'"vmul.f32 s{k}, s{k}, {xreg}\\n\\t"' for k in range(8)]
+                + [f'"vadd.f32 %[{a}], %[{a}], s{k}\\n\\t"' for k, a in enumerate(acc)])
+
     outs = ", ".join(f'[{a}] "+t" ({a})' for a in acc)
-    clob = ", ".join(f'"s{k}"' for k in range(9))
-    return (["        __asm__ volatile("] + [f"            {b}" for b in body]
-            + [f"            : {outs},", '              [xp] "+r" (xp), [w] "+r" (w), [n] "+r" (n)',
-               "            :", f'            : {clob}, "cc", "memory");'])
+    tail = ["            : " + outs + ",", '              [xp] "+r" (xp), [w] "+r" (w), [n] "+r" (n)', "            :",
+            "            : " + ", ".join(f'"s{k}"' for k in range(10)) + ', "cc", "memory");']
+    pair = ['"1:\\n\\t"', '"vldmia %[xp]!, {s8-s9}\\n\\t"', *step("s8"), *step("s9"),
+            '"subs %[n], %[n], #1\\n\\t"', '"bne 1b\\n\\t"']
+    single = ['"vldmia %[xp]!, {s8}\\n\\t"', *step("s8")]
+    return (["        n = n_in >> 1;", "        if (n > 0) __asm__ volatile("] + [f"            {x}" for x in pair]
+            + tail + ["        if (n_in & 1) __asm__ volatile("] + [f"            {x}" for x in single] + tail)
 
 
 def _tanh_text(tanh: str) -> str:

@@ -1,0 +1,78 @@
+"""``swarm-export``: export trained actors for deployment.
+
+Each subcommand is one ``add_<name>(subparsers)`` function that registers its parser and sets ``func``;
+``main`` runs it, prints ``CExportError``/``SpecError`` messages (which say how to fix the input) to stderr and
+exits 2 without a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from firmware_export.cgen import QUANTS, TANHS
+from firmware_export.mlp_graph import CExportError
+from runtime.spec import SpecError
+
+
+def _cmd_c(args: argparse.Namespace) -> int:
+    from firmware_export.c_export import export_c
+
+    ex = export_c(args.model, args.out, quant=args.quant, tanh=args.tanh, spec_toml=args.spec_toml, role=args.role)
+    m = ex.model
+    print(f"wrote {ex.header} and {ex.source}: agent {m.agent_id} ({m.role.label}), spec {m.spec.hash}, "
+          f"obs {m.obs_dim} -> act {m.act_dim}, weights {ex.quant} ({ex.sources.weight_bytes} B of tables)")
+    if args.report:
+        from firmware_export.c_report import cost_report, format_report
+
+        print(format_report(ex, cost_report(ex, args.model, n_obs=args.report_obs)))
+    return 0
+
+
+def add_c(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("c", help="write self-contained C99 (policy.h, policy.c) for one ONNX actor",
+                       description="Generate C99 for the drone's microcontroller from an actor exported by "
+                                   "`swarm-export onnx`: policy.h (API, dimensions, spec hash, role, observation "
+                                   "offsets) and policy.c (static const weights, no heap, no stdio).")
+    p.add_argument("--model", required=True, type=Path, help="actor ONNX file, e.g. models/role_based/pursuer_0.onnx")
+    p.add_argument("--out", required=True, type=Path, help="output directory, e.g. build/c/")
+    p.add_argument("--quant", choices=QUANTS, default="float",
+                   help="float: float32 weights; int8w: int8 weights with one float scale per neuron")
+    p.add_argument("--tanh", choices=TANHS, default="fast",
+                   help="fast: rational approximation (error <= 5e-7, no libm); libm: tanhf (link -lm)")
+    p.add_argument("--spec-toml", type=Path, default=None,
+                   help="spec TOML ([spec] table) for models without spec metadata")
+    p.add_argument("--role", default=None, help="pursuer|scout|evader, for models without role metadata")
+    p.add_argument("--report", action="store_true",
+                   help="also check parity against onnxruntime and report Cortex-M4 size and cycles "
+                        "(needs a host C compiler, arm-none-eabi-gcc and unicorn)")
+    p.add_argument("--report-obs", type=int, default=10_000, help="observations for the --report parity check")
+    p.set_defaults(func=_cmd_c)
+
+
+SUBCOMMANDS = [add_c]
+"""One registration function per subcommand."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="swarm-export", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    try:
+        return args.func(args)
+    except (CExportError, SpecError) as exc:
+        print(f"swarm-export {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
