@@ -1,0 +1,246 @@
+"""``SimSwarm``: N simulated Crazyflies behind UDP sockets (ports ``base_port + i``), one thread.
+
+One selector loop serves every drone: it answers each datagram as it arrives (setpoints take effect at
+once), steps the batched flight model at a fixed rate, and sends log blocks when they fall due. In-process
+use (tests, the demo)::
+
+    with SimSwarm(n=3, base_port=19850, seed=1) as sims:
+        uris = sims.uris            # ["udp://127.0.0.1:19850", ...]
+        ...                         # connect cflib / open_link(uri)
+        sims.kill_link(0)           # drone 0 stops answering (keeps flying on its own watchdogs)
+
+``swarm-gs sim --drones N`` runs the same thing standalone for any cflib client.
+"""
+from __future__ import annotations
+
+import logging
+import selectors
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from groundstation.sim.crazyflie import SimCrazyflie
+from groundstation.sim.firmware import SupervisorState
+from groundstation.sim.flight_model import QuadBatch, QuadParams
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_BASE_PORT = 19850
+"""cflib's UDP driver scans 19850-19859 (CrazySim's convention)."""
+
+
+class SimError(RuntimeError):
+    """The simulator cannot start or was used wrongly; the message says how to fix it."""
+
+
+@dataclass(frozen=True)
+class DroneTruth:
+    """Ground truth of one simulated drone, for tests and the demo (not what the drone reports)."""
+
+    position: tuple[float, float, float]
+    """[m]"""
+    velocity: tuple[float, float, float]
+    """[m/s]"""
+    supervisor: str
+    """Supervisor state: disarmed, ready, flying, level_out, locked."""
+    motors_on: bool
+    battery_v: float
+    """[V]"""
+    link_alive: bool
+
+
+class SimSwarm:
+    """N simulated Crazyflies on ``host:base_port + i``."""
+
+    def __init__(self, n: int, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", seed: int = 0,
+                 params: QuadParams = QuadParams(), spacing: float = 0.5,
+                 start_positions: np.ndarray | None = None, physics_dt: float = 0.005,
+                 latency_probe: bool = False) -> None:
+        if n < 1:
+            raise SimError(f"SimSwarm needs at least one drone, got n={n}")
+        self.host, self.base_port, self.physics_dt = host, base_port, physics_dt
+        if start_positions is None:
+            cols = max(1, int(np.ceil(np.sqrt(n))))
+            start_positions = np.array([[(i % cols) * spacing, (i // cols) * spacing, 0.0] for i in range(n)])
+        self.model = QuadBatch(n, params, start_positions, seed)
+        now = time.monotonic()
+        self.drones = [SimCrazyflie(i, self.model, now, latency_probe) for i in range(n)]
+        self._alive = [True] * n
+        self._clients: list[tuple[str, int] | None] = [None] * n
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._sockets: list[socket.socket] = []
+        self._selector: selectors.BaseSelector | None = None
+
+    @property
+    def n(self) -> int:
+        return len(self.drones)
+
+    @property
+    def uris(self) -> list[str]:
+        return [f"udp://{self.host}:{self.base_port + i}" for i in range(self.n)]
+
+    # ---- lifecycle ---------------------------------------------------------------------------------
+
+    def start(self) -> "SimSwarm":
+        if self._thread is not None:
+            raise SimError("SimSwarm already started")
+        self._selector = selectors.DefaultSelector()
+        try:
+            for i in range(self.n):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                self._sockets.append(sock)
+                sock.bind((self.host, self.base_port + i))
+                sock.setblocking(False)
+                self._selector.register(sock, selectors.EVENT_READ, i)
+        except OSError as exc:
+            self._close_sockets()
+            raise SimError(f"cannot bind UDP {self.host}:{self.base_port + len(self._sockets) - 1} ({exc}): "
+                           f"another simulator is running there; pick another base port "
+                           f"(swarm-gs sim --base-port P)") from exc
+        self._thread = threading.Thread(target=self._run, name="SimSwarm", daemon=True)
+        self._thread.start()
+        logger.info("simulating %d Crazyflies on %s:%d-%d", self.n, self.host, self.base_port,
+                    self.base_port + self.n - 1)
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+            self._thread = None
+        self._close_sockets()
+
+    def __enter__(self) -> "SimSwarm":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _close_sockets(self) -> None:
+        if self._selector is not None:
+            self._selector.close()
+            self._selector = None
+        for sock in self._sockets:
+            sock.close()
+        self._sockets = []
+
+    # ---- failure injection and inspection ---------------------------------------------------------
+
+    def kill_link(self, i: int) -> None:
+        """Drone ``i`` stops answering and stops sending (a radio out of range); it keeps flying."""
+        with self._lock:
+            self._alive[i] = False
+
+    def restore_link(self, i: int) -> None:
+        with self._lock:
+            self._alive[i] = True
+
+    def reboot(self, i: int) -> None:
+        """Power-cycle drone ``i`` (the only way out of the locked state)."""
+        with self._lock:
+            self.drones[i].reboot(time.monotonic())
+
+    def truth(self, i: int) -> DroneTruth:
+        with self._lock:
+            d, m = self.drones[i], self.model
+            return DroneTruth(tuple(float(v) for v in m.pos[i]), tuple(float(v) for v in m.vel[i]),
+                              d.firmware.state.value, d.firmware.motors_on,
+                              float(m.battery_voltage(i, d.firmware.motors_on)), self._alive[i])
+
+    def param(self, i: int, name: str) -> float:
+        with self._lock:
+            return self.drones[i].params[name]
+
+    def latency_samples(self) -> list[float]:
+        """Measurement-to-setpoint delays [s] of every drone (``latency_probe=True`` only)."""
+        with self._lock:
+            return [s for d in self.drones for s in d.latency_samples]
+
+    def packet_counts(self) -> list[tuple[int, int]]:
+        """(received, sent) CRTP packets per drone."""
+        with self._lock:
+            return [(d.rx_packets, d.tx_packets) for d in self.drones]
+
+    def is_locked(self, i: int) -> bool:
+        with self._lock:
+            return self.drones[i].firmware.state is SupervisorState.LOCKED
+
+    # ---- the loop ----------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        dt = self.physics_dt
+        next_step = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            next_log = min(d.next_log_due() for d in self.drones)
+            timeout = min(max(min(next_step, next_log) - now, 0.0), 0.05)
+            try:
+                events = self._selector.select(timeout)
+            except (OSError, ValueError):
+                break  # sockets closed under us by stop()
+            for key, _ in events:
+                self._drain(key.fileobj, key.data)
+            with self._lock:
+                now = time.monotonic()
+                steps = 0
+                while next_step <= now and steps < 10:
+                    self._physics_step(next_step, dt)
+                    next_step += dt
+                    steps += 1
+                if next_step <= now:
+                    logger.debug("simulator fell behind by %.1f ms", (now - next_step) * 1e3)
+                    next_step = now + dt
+                self._send_logs(now)
+
+    def _drain(self, sock: socket.socket, i: int) -> None:
+        while True:
+            try:
+                data, addr = sock.recvfrom(64)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # e.g. ICMP port unreachable from a client that went away
+                logger.debug("drone %d: recv error %s", i, exc)
+                return
+            with self._lock:
+                if not self._alive[i]:
+                    continue
+                self._clients[i] = addr
+                replies = self.drones[i].handle(data, time.monotonic())
+                self._send(i, replies)
+
+    def _send(self, i: int, datagrams: list[bytes]) -> None:
+        addr = self._clients[i]
+        if addr is None or not datagrams:
+            return
+        sock = self._sockets[i]
+        for datagram in datagrams:
+            try:
+                sock.sendto(datagram, addr)
+                self.drones[i].tx_packets += 1
+            except OSError as exc:
+                logger.debug("drone %d: send error %s", i, exc)
+
+    def _send_logs(self, now: float) -> None:
+        for i, drone in enumerate(self.drones):
+            if drone.next_log_due() > now:
+                continue
+            packets = drone.due_log_packets(now)
+            if not self._alive[i] or self._clients[i] is None:
+                continue
+            for datagram, ts in packets:
+                self._send(i, [datagram])
+                drone.note_log_sent(ts, time.monotonic())
+
+    def _physics_step(self, t: float, dt: float) -> None:
+        n = self.n
+        v_des = np.zeros((n, 3))
+        yaw_rate = np.zeros(n)
+        motors = np.zeros(n, dtype=bool)
+        for i, drone in enumerate(self.drones):
+            v_des[i], yaw_rate[i], motors[i] = drone.control(t)
+        self.model.step(dt, v_des, yaw_rate, motors)
