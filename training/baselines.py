@@ -1,0 +1,287 @@
+"""Non-learning baselines and the policy protocol the evaluator runs.
+
+Every policy maps a batch of observations to a batch of actions for *all* agents::
+
+    actions = policy.act(obs, env)      # obs [B, N, D] from PursuitEnv, actions [B, N, 2] in [-1, 1]
+
+``TeamPolicy`` takes the pursuer-team rows (pursuers and scouts) from one policy and the evader rows from
+another, so learned pursuers can meet scripted evaders and the other way round.
+
+The classical team is a **centralized, full-information** baseline: it reads the true world state from
+``env.state`` (every position, velocity and obstacle), not the agents' observations, whatever the spec's
+``observability``. It is the bar that learned policies have to beat, not a deployable controller.
+
+- pursuers: assigned to evaders by the Hungarian method (scipy's ``linear_sum_assignment`` per env) with
+  each evader replicated ``ceil(n_p / n_e)`` times, so each gets about ``n_p / n_e`` pursuers; each flies at
+  its evader's position led by the evader's velocity, through an avoidance field (obstacles: slide along
+  the surface and a short repulsion; walls: no outward motion; teammates: separation);
+- scouts: Lloyd's algorithm, each moves toward the centroid of its own Voronoi cell clipped to the arena
+  (every agent a seed, the same cells as the exploration reward), through the same avoidance field;
+- evaders (``FleeingEvaders``): flee the pursuers and scouts (inverse-square weighted), repelled by walls,
+  obstacles and each other, always at full speed.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from runtime.spec import Role, SwarmSpec
+from training.voronoi import bounded_cells
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Policy", "RandomPolicy", "TeamPolicy", "ClassicalPursuers", "FleeingEvaders", "assign_targets",
+           "make_policy", "POLICY_NAMES", "EVADER_NAMES"]
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Anything that acts for every agent of a batch of envs.
+
+    ``obs``: ``[B, N, D]`` as returned by ``PursuitEnv.reset/step`` (rows zero-padded to ``spec.max_obs_dim``);
+    ``env``: the ``PursuitEnv`` being stepped (full-information baselines read ``env.state``; learned policies
+    should use ``obs`` only). Returns ``[B, N, 2]`` in [-1, 1]; rows a policy does not control may be zero.
+    """
+
+    def act(self, obs: np.ndarray, env) -> np.ndarray: ...
+
+
+class RandomPolicy:
+    """Uniform random actions in [-1, 1]^2 for every agent, from its own generator."""
+
+    def __init__(self, seed: int | None = None) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs: np.ndarray, env) -> np.ndarray:
+        return self.rng.uniform(-1.0, 1.0, (obs.shape[0], env.n_agents, 2))
+
+
+class TeamPolicy:
+    """Pursuer-team rows (pursuers and scouts) from ``pursuer_team``, evader rows from ``evaders``."""
+
+    def __init__(self, pursuer_team: Policy, evaders: Policy) -> None:
+        self.pursuer_team = pursuer_team
+        self.evaders = evaders
+
+    def act(self, obs: np.ndarray, env) -> np.ndarray:
+        nt = env.spec.team.n_team
+        out = np.asarray(self.pursuer_team.act(obs, env), dtype=np.float64).copy()
+        out[:, nt:] = np.asarray(self.evaders.act(obs, env), dtype=np.float64)[:, nt:]
+        return out
+
+
+# --------------------------------------------------------------------------------------------------
+# pure helpers
+
+
+def assign_targets(pursuer_pos: np.ndarray, target_pos: np.ndarray) -> np.ndarray:
+    """Hungarian assignment of pursuers ``[B, P, 2]`` to targets ``[B, E, 2]``, minimizing total distance.
+
+    Each target is offered ``ceil(P / E)`` slots, so with ``P >= E`` every target gets at least one pursuer
+    and none gets more than ``ceil(P / E)``. Returns the target index of every pursuer ``[B, P]``.
+    """
+    b, p = pursuer_pos.shape[:2]
+    e = target_pos.shape[1]
+    out = np.zeros((b, p), dtype=np.int64)
+    if p == 0 or e == 0:
+        return out
+    k = math.ceil(p / e)
+    d = np.linalg.norm(pursuer_pos[:, :, None, :] - target_pos[:, None, :, :], axis=-1)  # [B, P, E]
+    slot_target = np.repeat(np.arange(e), k)  # [E * k]
+    cost = d[:, :, slot_target]  # [B, P, E * k]
+    for i in range(b):
+        rows, cols = linear_sum_assignment(cost[i])
+        out[i, rows] = slot_target[cols]
+    return out
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.sqrt((v * v).sum(-1, keepdims=True))
+    return v / np.maximum(n, 1e-9)
+
+
+def _clip_norm(v: np.ndarray, limit: float = 1.0) -> np.ndarray:
+    n = np.sqrt((v * v).sum(-1, keepdims=True))
+    return v * np.minimum(1.0, limit / np.maximum(n, 1e-12))
+
+
+def _perp_towards(n: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The unit perpendicular of ``n`` that points along ``ref`` (ties: counter-clockwise)."""
+    t = np.stack([-n[..., 1], n[..., 0]], axis=-1)
+    s = np.where((t * ref).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    return t * s
+
+
+def avoid_obstacles(pos: np.ndarray, v: np.ndarray, radius: np.ndarray, obstacle_pos: np.ndarray,
+                    obstacle_radius: np.ndarray, reach: float, repulsion: float) -> np.ndarray:
+    """Bends the velocity wish ``v`` ``[B, M, 2]`` around circular obstacles.
+
+    Within ``reach`` [m] of an obstacle's surface the inward part of ``v`` is turned into motion along the
+    surface (the side ``v`` already leans to), in proportion to closeness, plus a repulsion growing to
+    ``repulsion`` at contact. ``radius`` ``[M]``: the agents' body radii.
+    """
+    if obstacle_pos.shape[1] == 0:
+        return v
+    d = pos[:, :, None, :] - obstacle_pos[:, None, :, :]  # [B, M, K, 2]
+    dist = np.sqrt((d * d).sum(-1))
+    n = d / np.maximum(dist, 1e-9)[..., None]
+    surface = dist - obstacle_radius[:, None, :] - radius[None, :, None]
+    w = np.clip(1.0 - surface / reach, 0.0, 1.0)  # [B, M, K]
+    vk = v[:, :, None, :]
+    inward = np.maximum(-(vk * n).sum(-1), 0.0)  # speed toward the obstacle
+    t = _perp_towards(n, vk)
+    return v + ((w * inward + repulsion * w * w)[..., None] * n + (w * inward)[..., None] * t).sum(2)
+
+
+def wall_field(pos: np.ndarray, v: np.ndarray, radius: np.ndarray, hw: float, reach: float,
+               repulsion: float) -> np.ndarray:
+    """Within ``reach`` [m] of a wall: cancels the outward part of ``v`` in proportion to closeness and adds a
+    repulsion growing quadratically to ``repulsion`` at the wall."""
+    gap = hw - radius[None, :, None] - np.abs(pos)  # [B, M, 2]
+    w = np.clip(1.0 - gap / reach, 0.0, 1.0)
+    side = np.sign(pos)
+    outward = np.maximum(v * side, 0.0)
+    return v - side * outward * w - side * repulsion * w * w
+
+
+def separation(pos: np.ndarray, others: np.ndarray, reach: float, gain: float,
+               same: bool = True) -> np.ndarray:
+    """Push ``[B, M, 2]`` away from ``others`` ``[B, O, 2]`` closer than ``reach`` [m], linear in closeness.
+    ``same``: ``others`` is ``pos`` itself (the zero self-distance is ignored)."""
+    d = pos[:, :, None, :] - others[:, None, :, :]
+    dist = np.sqrt((d * d).sum(-1))
+    w = np.clip(1.0 - dist / reach, 0.0, 1.0)
+    if same:
+        w = np.where(dist > 1e-12, w, 0.0)
+    return gain * ((w / np.maximum(dist, 1e-9))[..., None] * d).sum(2)
+
+
+# --------------------------------------------------------------------------------------------------
+# policies
+
+
+class ClassicalPursuers:
+    """Hungarian pursuit and Lloyd scouting for the pursuer team; evader rows are zero.
+
+    Reads ``env.state`` (centralized, full information). Gains are in units of normalized action.
+    """
+
+    lead_time_max = 0.6
+    """Longest look-ahead [s] when leading an evader: ``min(distance / own speed, lead_time_max)``."""
+    obstacle_reach = 0.3
+    """Distance from an obstacle's surface [m] where avoidance starts."""
+    obstacle_repulsion = 0.5
+    """Repulsion at an obstacle's surface [normalized action]."""
+    wall_reach = 0.15
+    """Distance from a wall [m] where outward motion is damped (pursuers follow evaders to the wall)."""
+    separation_reach = 0.3
+    """Centre distance [m] under which teammates push apart (contact is at 0.15 m)."""
+    separation_gain = 1.5
+    """Teammate push at zero distance [normalized action]."""
+    lloyd_gain = 2.0
+    """Scouts' commanded speed per metre to their cell's centroid [1/s, normalized action]."""
+
+    def act(self, obs: np.ndarray, env) -> np.ndarray:
+        spec: SwarmSpec = env.spec
+        s = env.state
+        t = spec.team
+        b = s.pos.shape[0]
+        nt = t.n_team
+        out = np.zeros((b, t.n_agents, 2))
+        radius = np.asarray(spec.per_agent("radius"))
+        hw = spec.arena.half_width
+        team_pos = s.pos[:, :nt]
+        wish = np.zeros((b, nt, 2))
+        p = np.asarray(t.indices(Role.PURSUER))
+        if p.size:
+            wish[:, p] = self._pursue(spec, s.pos[:, p], s.pos[:, nt:], s.vel[:, nt:])
+        sc = np.asarray(t.indices(Role.SCOUT))
+        if sc.size:
+            _, centroids = bounded_cells(s.pos, hw)
+            wish[:, sc] = _clip_norm(self.lloyd_gain * (centroids[:, sc] - s.pos[:, sc]))
+        v = wish + separation(team_pos, team_pos, self.separation_reach, self.separation_gain)
+        v = avoid_obstacles(team_pos, v, radius[:nt], s.obstacle_pos, s.obstacle_radius,
+                            self.obstacle_reach, self.obstacle_repulsion)
+        v = wall_field(team_pos, v, radius[:nt], hw, self.wall_reach, 0.0)
+        out[:, :nt] = _clip_norm(v)
+        return out
+
+    def _pursue(self, spec: SwarmSpec, pp: np.ndarray, ep: np.ndarray, ev: np.ndarray) -> np.ndarray:
+        """Unit velocity wishes ``[B, P, 2]`` of the pursuers toward their assigned evaders, led."""
+        target = assign_targets(pp, ep)  # [B, P]
+        bi = np.arange(pp.shape[0])[:, None]
+        tp = ep[bi, target]
+        tv = ev[bi, target]
+        dist = np.linalg.norm(tp - pp, axis=-1, keepdims=True)
+        lead = np.minimum(dist / spec.pursuer.max_speed, self.lead_time_max)
+        hw = spec.arena.half_width
+        goal = np.clip(tp + tv * lead, -hw, hw)
+        return _unit(goal - pp)
+
+
+class FleeingEvaders:
+    """Evaders flee the pursuer team, repelled by walls, obstacles and each other; team rows are zero.
+
+    Reads ``env.state`` (full information).
+    """
+
+    threat_softening = 0.2
+    """Added to threat distances [m] in the inverse-square weighting, so the nearest does not dominate to
+    infinity."""
+    wall_reach = 0.8
+    """Distance from a wall [m] where the evader starts to turn away (corners are where it gets caught)."""
+    wall_repulsion = 1.5
+    """Repulsion at a wall [normalized action]."""
+    obstacle_reach = 0.3
+    """Distance from an obstacle's surface [m] where avoidance starts."""
+    obstacle_repulsion = 0.5
+    """Repulsion at an obstacle's surface [normalized action]."""
+    separation_reach = 0.3
+    """Evader-evader centre distance [m] under which they push apart."""
+
+    def act(self, obs: np.ndarray, env) -> np.ndarray:
+        spec: SwarmSpec = env.spec
+        s = env.state
+        nt = spec.team.n_team
+        b, n = s.pos.shape[:2]
+        out = np.zeros((b, n, 2))
+        ep = s.pos[:, nt:]
+        d = ep[:, :, None, :] - s.pos[:, None, :nt, :]  # [B, E, T, 2] from threats to evader
+        dist = np.sqrt((d * d).sum(-1))
+        w = 1.0 / (dist + self.threat_softening) ** 2
+        flee = _unit(((w / np.maximum(dist, 1e-9))[..., None] * d).sum(2))
+        radius = np.asarray(spec.per_agent("radius"))[nt:]
+        v = flee + separation(ep, ep, self.separation_reach, 1.5)
+        v = wall_field(ep, v, radius, spec.arena.half_width, self.wall_reach, self.wall_repulsion)
+        v = avoid_obstacles(ep, v, radius, s.obstacle_pos, s.obstacle_radius, self.obstacle_reach,
+                            self.obstacle_repulsion)
+        out[:, nt:] = _unit(v)
+        return out
+
+
+POLICY_NAMES = ("random", "classical")
+EVADER_NAMES = ("classical", "random")
+
+
+def make_policy(name: str, seed: int | None = None, evaders: str = "classical") -> TeamPolicy:
+    """A named pursuer team (``POLICY_NAMES``) against named evaders (``EVADER_NAMES``: "classical" = fleeing).
+
+    ``seed`` seeds the random generators of random policies.
+    """
+    if name == "random":
+        team: Policy = RandomPolicy(seed)
+    elif name == "classical":
+        team = ClassicalPursuers()
+    else:
+        raise ValueError(f"unknown policy {name!r}: use one of {list(POLICY_NAMES)}")
+    if evaders == "classical":
+        ev: Policy = FleeingEvaders()
+    elif evaders == "random":
+        ev = RandomPolicy(None if seed is None else seed + 1)
+    else:
+        raise ValueError(f"unknown evader policy {evaders!r}: use one of {list(EVADER_NAMES)}")
+    return TeamPolicy(team, ev)
