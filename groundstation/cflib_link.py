@@ -1,0 +1,258 @@
+"""``CflibLink``: a Crazyflie (real or simulated) through unmodified cflib.
+
+URIs: ``radio://0/80/2M/E7E7E7E701`` (Crazyradio), ``udp://127.0.0.1:19850`` (``swarm-gs sim``, CrazySim
+SITL; cflib 0.1.32+), ``usb://0``.
+
+Telemetry comes from two log blocks: a fast one (position, velocity, ``supervisor.info``: 26 bytes, the
+most one CRTP log packet carries) every ``period_ms`` and a slow one (battery, RSSI, position variance)
+every ``aux_period_ms``; samples are published on the fast block. Streamed setpoints go through
+``Commander``, takeoff and landing through ``HighLevelCommander`` (after ``notify_setpoint_stop`` when
+setpoints were streamed, so the onboard planner may take over), the emergency stop through the supervisor
+port (cflib falls back to the localization port on firmware older than protocol 12).
+
+cflib's UDP and radio drivers do not report a silent peer: ``link_lost`` is judged from telemetry
+silence (``link_loss_timeout``, default 0.25 s) and from cflib's own connection-lost callback.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+
+import cflib.crtp
+from cflib.crazyflie import Crazyflie
+from cflib.crazyflie.log import LogConfig
+
+from groundstation.link import FlightState, Link, LinkError, LinkStats, Telemetry
+
+logger = logging.getLogger(__name__)
+
+FAST_VARS = ("stateEstimate.x", "stateEstimate.y", "stateEstimate.z",
+             "stateEstimate.vx", "stateEstimate.vy", "stateEstimate.vz", "supervisor.info")
+NOTIFY_STOP_VALID_MS = 200
+"""How long the last streamed setpoint stays valid when handing over to the onboard planner [ms]."""
+SLOW_VARS = ("pm.vbat", "radio.rssi", "kalman.varPX", "kalman.varPY", "kalman.varPZ")
+
+_drivers_lock = threading.Lock()
+_drivers_ready = False
+
+
+def init_drivers() -> None:
+    """``cflib.crtp.init_drivers()`` once per process."""
+    global _drivers_ready
+    with _drivers_lock:
+        if not _drivers_ready:
+            cflib.crtp.init_drivers()
+            _drivers_ready = True
+
+
+def flight_state_from_supervisor(info: int) -> FlightState:
+    """Decode the firmware's ``supervisor.info`` bitfield."""
+    if info & (1 << 6):
+        return FlightState.LOCKED
+    if info & (1 << 7):
+        return FlightState.CRASHED
+    if info & (1 << 4):
+        return FlightState.FLYING
+    if info & (1 << 1):
+        return FlightState.LANDED
+    return FlightState.DISARMED
+
+
+def _fix_for(uri: str) -> str:
+    if uri.startswith("udp://"):
+        return ("start the simulator (swarm-gs sim --drones N --base-port P) or CrazySim, and check the port; "
+                "cflib's UDP driver waits silently when nobody answers")
+    if uri.startswith("radio://"):
+        return "plug in the Crazyradio, power the Crazyflie, and check channel, data rate and address"
+    return "check that the Crazyflie is connected and powered"
+
+
+class CflibLink(Link):
+    """One Crazyflie through cflib. Opening blocks until the TOCs are in and the first telemetry arrived."""
+
+    def __init__(self, uri: str, *, period_ms: int = 10, aux_period_ms: int = 100,
+                 connect_timeout: float = 10.0, link_loss_timeout: float = 0.25,
+                 rw_cache: str | None = None) -> None:
+        super().__init__(uri)
+        self.period_ms, self.aux_period_ms = period_ms, aux_period_ms
+        self.link_loss_timeout = link_loss_timeout
+        self._sent = 0
+        self._received = 0
+        self._streaming = False
+        self._closed = False
+        self._connection_lost = False
+        self._slow: dict[str, float] = {}
+        self._radio_quality: float | None = None
+        self._arrivals: collections.deque[float] = collections.deque(maxlen=max(2, 1000 // period_ms))
+        init_drivers()
+        self._cf = Crazyflie(rw_cache=rw_cache)
+        self._cf.packet_sent.add_callback(self._count_sent)
+        self._cf.packet_received.add_callback(self._count_received)
+        self._cf.link_statistics.link_quality_updated.add_callback(self._on_radio_quality)
+        self._connect(connect_timeout)
+        try:
+            self._start_logging()
+            self.wait_telemetry(connect_timeout, lambda s: not math.isnan(s.battery))
+        except LinkError:
+            self.close()
+            raise
+
+    # ---- connection --------------------------------------------------------------------------------
+
+    def _connect(self, timeout: float) -> None:
+        done = threading.Event()
+        failure: list[str] = []
+
+        def connected(uri: str) -> None:
+            done.set()
+
+        def failed(uri: str, message: str) -> None:
+            failure.append(message)
+            done.set()
+
+        cf = self._cf
+        cf.connected.add_callback(connected)
+        cf.connection_failed.add_callback(failed)
+        cf.connection_lost.add_callback(self._on_connection_lost)
+        try:
+            cf.open_link(self.uri)
+            if not done.wait(timeout):
+                cf.close_link()
+                raise LinkError(self.uri, f"no answer within {timeout:.1f} s", _fix_for(self.uri))
+            if failure:
+                cf.close_link()
+                raise LinkError(self.uri, f"connection failed: {failure[0].splitlines()[0]}", _fix_for(self.uri))
+        finally:
+            cf.connected.remove_callback(connected)
+            cf.connection_failed.remove_callback(failed)
+
+    def _start_logging(self) -> None:
+        toc = self._cf.log.toc
+        missing = [v for v in FAST_VARS + SLOW_VARS if toc.get_element_by_complete_name(v) is None]
+        if missing:
+            raise LinkError(self.uri, f"the firmware does not log {', '.join(missing)}",
+                            "flash a firmware with the Kalman estimator and the supervisor (2023.06 or later)")
+        self._fast = LogConfig("swarmpursuit_fast", self.period_ms)
+        for name in FAST_VARS:
+            self._fast.add_variable(name, "uint16_t" if name == "supervisor.info" else "float")
+        self._aux = LogConfig("swarmpursuit_aux", self.aux_period_ms)
+        for name in SLOW_VARS:
+            self._aux.add_variable(name, "uint8_t" if name == "radio.rssi" else "float")
+        for config, callback in ((self._fast, self._on_fast), (self._aux, self._on_slow)):
+            try:
+                self._cf.log.add_config(config)
+            except (KeyError, AttributeError) as exc:
+                raise LinkError(self.uri, f"log block {config.name} rejected: {exc}",
+                                "use a period between 10 and 2540 ms") from exc
+            config.data_received_cb.add_callback(callback)
+            config.start()
+
+    # ---- receive side (cflib's incoming thread) ----------------------------------------------------
+
+    def _count_sent(self, pk) -> None:
+        self._sent += 1
+
+    def _count_received(self, pk) -> None:
+        self._received += 1
+
+    def _on_radio_quality(self, percent: float) -> None:
+        self._radio_quality = percent / 100.0
+
+    def _on_connection_lost(self, uri: str, message: str) -> None:
+        logger.warning("%s: connection lost: %s", uri, message.splitlines()[0] if message else "")
+        self._connection_lost = True
+
+    def _on_slow(self, timestamp: int, data: dict, config: LogConfig) -> None:
+        self._slow = data
+
+    def _on_fast(self, timestamp: int, data: dict, config: LogConfig) -> None:
+        now = time.monotonic()
+        self._arrivals.append(now)
+        slow = self._slow
+        variance = None
+        if "kalman.varPX" in slow:
+            variance = (slow["kalman.varPX"], slow["kalman.varPY"], slow["kalman.varPZ"])
+        rssi = slow.get("radio.rssi")
+        self._publish(Telemetry(
+            t=now,
+            position=(data["stateEstimate.x"], data["stateEstimate.y"], data["stateEstimate.z"]),
+            velocity=(data["stateEstimate.vx"], data["stateEstimate.vy"], data["stateEstimate.vz"]),
+            battery=slow.get("pm.vbat", math.nan),
+            link_quality=self._link_quality(now),
+            flight_state=flight_state_from_supervisor(data["supervisor.info"]),
+            position_variance=variance,
+            rssi=None if rssi is None else -float(rssi),
+            vehicle_time_ms=timestamp,
+        ))
+
+    def _link_quality(self, now: float) -> float:
+        if self._radio_quality is not None:
+            return self._radio_quality
+        recent = sum(1 for t in self._arrivals if now - t <= 1.0)
+        window = min(1.0, now - self._arrivals[0])
+        expected = window * 1000.0 / self.period_ms + 1.0
+        return min(1.0, recent / expected)
+
+    @property
+    def link_lost(self) -> bool:
+        return self._connection_lost or super().link_lost
+
+    # ---- commands ----------------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise LinkError(self.uri, "the link is closed", "open a new one with open_link(uri)")
+
+    def send_velocity(self, vx: float, vy: float, vz: float, yaw_rate: float = 0.0) -> None:
+        self._check_open()
+        self._streaming = True
+        self._cf.commander.send_velocity_world_setpoint(vx, vy, vz, math.degrees(yaw_rate))
+
+    def send_position(self, x: float, y: float, z: float, yaw: float = 0.0) -> None:
+        self._check_open()
+        self._streaming = True
+        self._cf.commander.send_position_setpoint(x, y, z, math.degrees(yaw))
+
+    def _hand_over_to_planner(self) -> None:
+        if self._streaming:
+            # Keep the last streamed setpoint valid a little longer than the next packet takes to arrive,
+            # or the firmware's watchdog sees a 2 s old setpoint and locks before the planner takes over.
+            self._cf.commander.send_notify_setpoint_stop(remain_valid_milliseconds=NOTIFY_STOP_VALID_MS)
+            self._streaming = False
+
+    def takeoff(self, height: float, duration: float) -> None:
+        self._check_open()
+        self._hand_over_to_planner()
+        self._cf.high_level_commander.takeoff(height, duration)
+
+    def land(self, duration: float, height: float = 0.0) -> None:
+        self._check_open()
+        self._hand_over_to_planner()
+        self._cf.high_level_commander.land(height, duration)
+
+    def emergency_stop(self) -> None:
+        self._check_open()
+        for _ in range(3):  # idempotent; repeated because radio links can drop a packet
+            self._cf.supervisor.send_emergency_stop()
+
+    def stats(self) -> LinkStats:
+        return LinkStats(self._sent, self._received, self._telemetry_count, self.telemetry_age(),
+                         self.link_lost, self._opened_at)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        latest = self.telemetry()
+        if latest is not None and latest.flight_state is FlightState.FLYING and not self.link_lost:
+            logger.warning("%s: closing while flying; cflib sends a zero-thrust setpoint on close, so the "
+                           "drone will drop. Land first.", self.uri)
+        self._cf.close_link()
+
+    @property
+    def crazyflie(self) -> Crazyflie:
+        """The underlying cflib object (for parameters, extpos and anything the Link does not cover)."""
+        return self._cf
