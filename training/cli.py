@@ -1,0 +1,172 @@
+"""``swarm-train``: evaluate policies against the paper's tables and draw episodes.
+
+One function per subcommand (``add_<name>`` builds its parser, ``cmd_<name>`` runs it); a new subcommand is
+one more pair and one line in ``build_parser``. Wrong configs and arguments print one ``error:`` line and
+exit with status 2, without a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+from runtime.spec import SpecError
+
+DEFAULT_CONFIG = "configs/role_based.toml"
+EXIT_USAGE = 2
+
+
+class UsageError(Exception):
+    """A user input is wrong; the message says which and how to fix it."""
+
+
+def _load_config(path: str):
+    from training.config import ExperimentConfig
+    return ExperimentConfig.from_toml(path)
+
+
+def _add_config(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=DEFAULT_CONFIG, metavar="PATH",
+                   help=f"experiment TOML (training.config.ExperimentConfig; default {DEFAULT_CONFIG})")
+
+
+def _add_policy(p: argparse.ArgumentParser) -> None:
+    from training.baselines import EVADER_NAMES, POLICY_NAMES
+    p.add_argument("--policy", choices=POLICY_NAMES, default="classical",
+                   help="pursuer team (pursuers and scouts): 'classical' = Hungarian pursuit + Lloyd scouts "
+                        "(centralized, full information), 'random' = uniform random actions (default classical)")
+    p.add_argument("--evaders", choices=EVADER_NAMES, default="classical",
+                   help="evader policy: 'classical' = flee the pursuer team, avoid walls and obstacles; "
+                        "'random' = uniform random (default classical)")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
+# ------------------------------------------------------------------------------------------- evaluate
+
+
+def add_evaluate(sub: Any) -> None:
+    p = sub.add_parser(
+        "evaluate", help="run a policy for N episodes and report the paper's metrics",
+        description="Runs exactly --episodes episodes on evaluation seeds (disjoint from training seeds, see "
+                    "training.evaluate), prints the metrics beside the paper's figures and optionally writes "
+                    "them as JSON and draws one episode (run alone on seed S).")
+    _add_config(p)
+    _add_policy(p)
+    p.add_argument("--episodes", type=_positive_int, default=200, metavar="N", help="episodes (default 200)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="evaluation seed (default 0)")
+    p.add_argument("--n-envs", type=_positive_int, default=50, metavar="K",
+                   help="episodes stepped together (default 50); the episodes drawn depend on it")
+    p.add_argument("--json", metavar="PATH", help="write the metrics and the run's settings to this JSON file")
+    p.add_argument("--plot", metavar="PNG", help="also draw one episode (seed S) to this PNG")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_evaluate)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from training.baselines import make_policy
+    from training.evaluate import EVAL_SEED_OFFSET, PAPER, evaluate, format_table
+
+    cfg = _load_config(args.config)
+    policy = make_policy(args.policy, seed=args.seed, evaders=args.evaders)
+    metrics = evaluate(cfg, policy, args.episodes, seed=args.seed, n_envs=args.n_envs,
+                       progress=not args.no_progress)
+    label = args.policy if args.evaders == "classical" else f"{args.policy} vs {args.evaders}"
+    print(f"{cfg.name}: {args.policy} pursuer team vs {args.evaders} evaders, {metrics['episodes']} episodes, "
+          f"seed {args.seed}, {metrics['wall_s']:.1f} s")
+    print(format_table({label: metrics}, PAPER.get(cfg.name)))
+    if args.json:
+        doc = {**metrics, "config": cfg.name, "config_path": str(args.config), "spec_hash": cfg.spec.hash,
+               "policy": args.policy, "evaders": args.evaders, "seed": args.seed, "n_envs": args.n_envs,
+               "eval_seed_offset": EVAL_SEED_OFFSET}
+        _write_json(args.json, doc)
+        print(f"wrote {args.json}")
+    if args.plot:
+        _plot(cfg, make_policy(args.policy, seed=args.seed, evaders=args.evaders), args.seed, args.plot,
+              f"{label}, {cfg.name}, seed {args.seed}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------- plot
+
+
+def add_plot(sub: Any) -> None:
+    p = sub.add_parser(
+        "plot", help="draw one episode of a policy",
+        description="Runs one episode and draws it: arena, obstacles, pursuers red, scouts blue, targets "
+                    "green, trails, sensing disks, the bounded Voronoi cells at the final step and the area "
+                    "covered.")
+    _add_config(p)
+    _add_policy(p)
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="episode seed (default 0)")
+    p.add_argument("--out", required=True, metavar="PNG", help="PNG file to write")
+    p.set_defaults(func=cmd_plot)
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from training.baselines import make_policy
+
+    cfg = _load_config(args.config)
+    policy = make_policy(args.policy, seed=args.seed, evaders=args.evaders)
+    _plot(cfg, policy, args.seed, args.out, f"{args.policy} vs {args.evaders} evaders, {cfg.name}, seed {args.seed}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------- helpers
+
+
+def _plot(cfg, policy, seed: int, out: str, title: str) -> None:
+    from training.plots import plot_episode, record_episode
+    path = plot_episode(record_episode(cfg, policy, seed), out, title)
+    print(f"wrote {path}")
+
+
+def _write_json(path: str, doc: dict) -> None:
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
+    except OSError as exc:
+        raise UsageError(f"cannot write {path!r}: {exc.strerror or exc}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="swarm-train",
+        description="Train, evaluate and draw the heterogeneous pursuit-evasion-exploration swarm.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    adders: list[Callable[[Any], None]] = [add_evaluate, add_plot]
+    for add in adders:
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except (SpecError, UsageError) as exc:
+        print(f"swarm-train {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"swarm-train {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
