@@ -44,7 +44,7 @@ __all__ = ["bounded_cells", "bounded_cell_areas"]
 # Cells handled by one parallel task: large enough to amortize its scratch buffers, small enough to balance.
 _CHUNK = 32
 # Below this many cells the parallel launch costs more than it saves.
-_SERIAL_CELLS = 96
+_SERIAL_CELLS = 128
 # Relative margin on the early-stop test, so that rounding never skips a bisector that still cuts.
 _STOP_MARGIN = 1.0 + 1e-9
 
@@ -105,9 +105,10 @@ def _cell(pts, b, i, hw, key, idx, fv, bx, by):
         length = math.sqrt(key[k])
         if not length > 1e-150:
             length = math.hypot(dx, dy)  # dx * dx + dy * dy underflowed
-        inv = 1.0 / length
-        nx = dx * inv
-        ny = dy * inv
+        # Divide (not multiply by 1 / length, which overflows for subnormal lengths); then the bisector seen
+        # from j is bitwise the negation of this one, so the two cells agree on which side each vertex is.
+        nx = dx / length
+        ny = dy / length
         c = nx * (0.5 * (pix + qx)) + ny * (0.5 * (piy + qy))
         fmax = -np.inf
         for v in range(nv):
@@ -179,7 +180,12 @@ def _cell(pts, b, i, hw, key, idx, fv, bx, by):
 
 @njit(cache=True, fastmath=False)
 def _run_cells(pts, hw, areas, cents, want_centroids, start, stop):
-    """Cells ``start <= b * N + i < stop`` into ``areas`` (and ``cents`` when ``want_centroids``)."""
+    """Cells ``start <= b * N + i < stop`` into ``areas`` (and ``cents`` when ``want_centroids``).
+
+    Returns how many of those cells' own points are not finite (each point owns one cell, so the chunks
+    together check every point). Non-finite input cannot overrun the buffers: every comparison with NaN is
+    false, so no clip writes more than it would otherwise; the caller discards the output and raises.
+    """
     n = pts.shape[1]
     # Exact arithmetic gives at most 4 + (N - 1) vertices; the slack absorbs rounding-made extra crossings.
     cap = 2 * n + 16
@@ -188,25 +194,31 @@ def _run_cells(pts, hw, areas, cents, want_centroids, start, stop):
     fv = np.empty(cap)
     bx = np.empty(2 * cap)
     by = np.empty(2 * cap)
+    bad = 0
     for cell in range(start, stop):
         b = cell // n
         i = cell - b * n
+        if not (math.isfinite(pts[b, i, 0]) and math.isfinite(pts[b, i, 1])):
+            bad += 1
         area, cx, cy = _cell(pts, b, i, hw, key, idx, fv, bx, by)
         areas[b, i] = area
         if want_centroids:
             cents[b, i, 0] = cx
             cents[b, i, 1] = cy
+    return bad
 
 
 @njit(parallel=True, cache=True, fastmath=False)
 def _run_cells_parallel(pts, hw, areas, cents, want_centroids):
     total = pts.shape[0] * pts.shape[1]
     n_chunks = (total + _CHUNK - 1) // _CHUNK
+    bad = 0
     for c in prange(n_chunks):
-        _run_cells(pts, hw, areas, cents, want_centroids, c * _CHUNK, min(total, (c + 1) * _CHUNK))
+        bad += _run_cells(pts, hw, areas, cents, want_centroids, c * _CHUNK, min(total, (c + 1) * _CHUNK))
+    return bad
 
 
-def _validate(points, half_width) -> tuple[np.ndarray, float]:
+def _as_points(points) -> np.ndarray:
     arr = np.asarray(points)
     if arr.dtype.kind not in "fiu":
         raise TypeError(f"points must be a real float array [B, N, 2], got dtype {arr.dtype}")
@@ -214,28 +226,33 @@ def _validate(points, half_width) -> tuple[np.ndarray, float]:
         raise ValueError(f"points must have shape [B, N, 2], got {arr.shape}")
     if arr.shape[1] < 1:
         raise ValueError(f"points needs at least one point per env (N >= 1), got shape {arr.shape}")
-    arr = np.ascontiguousarray(arr, dtype=np.float64)
-    if not np.isfinite(arr).all():
-        raise ValueError("points contains NaN or inf: every coordinate must be finite")
-    if isinstance(half_width, (bool, np.bool_)) or not isinstance(half_width, numbers.Real):
-        raise TypeError(f"half_width must be a real number, got {type(half_width).__name__}")
-    hw = float(half_width)
-    if not math.isfinite(hw):
-        raise ValueError(f"half_width must be finite, got {hw}")
-    if hw <= 0.0:
-        raise ValueError(f"half_width must be > 0, got {hw}")
-    return arr, hw
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
+def _as_half_width(half_width) -> float:
+    if type(half_width) is not float:  # the common case skips the slower abstract-type check
+        if isinstance(half_width, (bool, np.bool_)) or not isinstance(half_width, numbers.Real):
+            raise TypeError(f"half_width must be a real number, got {type(half_width).__name__}")
+        half_width = float(half_width)
+    if not math.isfinite(half_width):
+        raise ValueError(f"half_width must be finite, got {half_width}")
+    if half_width <= 0.0:
+        raise ValueError(f"half_width must be > 0, got {half_width}")
+    return half_width
 
 
 def _compute(points, half_width, want_centroids: bool) -> tuple[np.ndarray, np.ndarray]:
-    pts, hw = _validate(points, half_width)
+    pts = _as_points(points)
+    hw = _as_half_width(half_width)
     b, n = pts.shape[:2]
     areas = np.empty((b, n))
     cents = np.empty((b, n, 2) if want_centroids else (0, 0, 2))
     if b * n <= _SERIAL_CELLS:
-        _run_cells(pts, hw, areas, cents, want_centroids, 0, b * n)
+        bad = _run_cells(pts, hw, areas, cents, want_centroids, 0, b * n)
     else:
-        _run_cells_parallel(pts, hw, areas, cents, want_centroids)
+        bad = _run_cells_parallel(pts, hw, areas, cents, want_centroids)
+    if bad:
+        raise ValueError(f"points contains NaN or inf ({bad} of {b * n} points): every coordinate must be finite")
     return areas, cents
 
 
