@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,6 +13,11 @@ from firmware_export.cgen import CSources, dequantized, generate
 from firmware_export.mlp_graph import ActorModel, Dense, read_actor
 
 log = logging.getLogger(__name__)
+
+TEMPLATE_DIR = Path(__file__).parent / "templates" / "crazyflie_app"
+"""The Crazyflie out-of-tree app; ``install_app`` copies it and adds the generated policy to its ``src/``."""
+STUBS_DIR = Path(__file__).parent / "fw_stubs"
+"""Minimal stand-ins for the firmware headers (and a host implementation) so tests can build the app."""
 
 
 @dataclass(frozen=True)
@@ -35,6 +41,16 @@ def export_c(model_path: str | Path, out_dir: str | Path, quant: str = "float", 
     source.write_text(sources.source)
     log.info("wrote %s and %s (%s, %d weight bytes)", header, source, quant, sources.weight_bytes)
     return CExport(model, sources, header, source, quant, tanh)
+
+
+def install_app(export: CExport, app_dir: str | Path) -> Path:
+    """Copy the Crazyflie app template to ``app_dir`` with this export's ``policy.h``/``policy.c`` in ``src/``."""
+    dst = Path(app_dir)
+    shutil.copytree(TEMPLATE_DIR, dst, dirs_exist_ok=True)
+    shutil.copyfile(export.header, dst / "src" / "policy.h")
+    shutil.copyfile(export.source, dst / "src" / "policy.c")
+    log.info("wrote the Crazyflie app to %s", dst)
+    return dst
 
 
 def mlp_forward(layers: tuple[Dense, ...], obs: np.ndarray) -> np.ndarray:

@@ -23,6 +23,11 @@ def _cmd_c(args: argparse.Namespace) -> int:
     m = ex.model
     print(f"wrote {ex.header} and {ex.source}: agent {m.agent_id} ({m.role.label}), spec {m.spec.hash}, "
           f"obs {m.obs_dim} -> act {m.act_dim}, weights {ex.quant} ({ex.sources.weight_bytes} B of tables)")
+    if args.app is not None:
+        from firmware_export.c_export import install_app
+
+        print(f"wrote the Crazyflie app to {install_app(ex, args.app)}: build it with "
+              f"`make -C {args.app} CRAZYFLIE_BASE=/path/to/crazyflie-firmware`")
     if args.report:
         from firmware_export.c_report import cost_report, format_report
 
@@ -44,6 +49,8 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spec-toml", type=Path, default=None,
                    help="spec TOML ([spec] table) for models without spec metadata")
     p.add_argument("--role", default=None, help="pursuer|scout|evader, for models without role metadata")
+    p.add_argument("--app", type=Path, default=None,
+                   help="also write the Crazyflie app-layer app (template + this policy) to this directory")
     p.add_argument("--report", action="store_true",
                    help="also check parity against onnxruntime and report Cortex-M4 size and cycles "
                         "(needs a host C compiler, arm-none-eabi-gcc and unicorn)")

@@ -13,6 +13,9 @@ import numpy as np
 from firmware_export.mlp_graph import CExportError
 
 WARN_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic")
+"""What the generated policy must compile cleanly with."""
+APP_WARN_FLAGS = ("-std=gnu11", "-Wall", "-Wextra", "-Werror")
+"""The Crazyflie app's sources, in the firmware's C dialect (gnu11)."""
 M4_FLAGS = ("-mcpu=cortex-m4", "-mthumb", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard")
 M4_OPT = ("-O2", "-ffast-math")
 ARM_GCC = "arm-none-eabi-gcc"
@@ -52,9 +55,10 @@ def host_cc() -> str:
     raise ToolchainError("no host C compiler (cc, gcc, clang) on PATH: install gcc")
 
 
-def build_host_library(c_files: list[Path], out: Path, extra: tuple[str, ...] = ("-O2",)) -> Path:
+def build_host_library(c_files: list[Path], out: Path, extra: tuple[str, ...] = ("-O2",),
+                       warn: tuple[str, ...] = WARN_FLAGS) -> Path:
     """Compile ``c_files`` into a shared library ``out`` with the project's warning flags."""
-    cmd = [host_cc(), *WARN_FLAGS, *extra, "-shared", "-fPIC", "-o", str(out), *map(str, c_files), "-lm"]
+    cmd = [host_cc(), *warn, *extra, "-shared", "-fPIC", "-o", str(out), *map(str, c_files), "-lm"]
     _run(cmd, "host compile of the generated C")
     return out
 
@@ -107,9 +111,9 @@ def require_arm_gcc() -> str:
 
 
 def compile_m4_object(c_file: Path, out: Path, include: tuple[Path, ...] = (),
-                      opt: tuple[str, ...] = M4_OPT) -> Path:
+                      opt: tuple[str, ...] = M4_OPT, warn: tuple[str, ...] = WARN_FLAGS) -> Path:
     """One translation unit for the Cortex-M4 with hard float, as the firmware builds it."""
-    cmd = [require_arm_gcc(), *WARN_FLAGS, *M4_FLAGS, *opt, "-ffunction-sections", "-fdata-sections",
+    cmd = [require_arm_gcc(), *warn, *M4_FLAGS, *opt, "-ffunction-sections", "-fdata-sections",
            "-fstack-usage", *[f"-I{p}" for p in include], "-c", "-o", str(out), str(c_file)]
     _run(cmd, "arm-none-eabi-gcc compile for cortex-m4")
     return out

@@ -1,0 +1,244 @@
+/* See swarm_logic.h. Mirrors runtime/observation.py: nearest-first slots with ties to the lower agent index,
+ * missing slots all zero, targets in fixed evader order with their age clamped to the target memory. */
+#include "swarm_logic.h"
+
+#include <math.h>
+#include <string.h>
+
+typedef char swarm_check_agents_fit_mask[(SWARM_N_AGENTS <= 32) ? 1 : -1];
+
+#if SWARM_POLICY_ROLE_ID == 0
+#define SWARM_ROLE_FIRST 0
+#define SWARM_ROLE_END SWARM_SPEC_N_PURSUERS
+#elif SWARM_POLICY_ROLE_ID == 1
+#define SWARM_ROLE_FIRST SWARM_SPEC_N_PURSUERS
+#define SWARM_ROLE_END SWARM_N_TEAM
+#else
+#define SWARM_ROLE_FIRST SWARM_N_TEAM
+#define SWARM_ROLE_END SWARM_N_AGENTS
+#endif
+
+int swarm_world_init(swarm_world_t *w, uint8_t self)
+{
+    memset(w, 0, sizeof(*w));
+    w->self = self;
+    return (int)self - SWARM_ROLE_FIRST >= 0 && self < SWARM_ROLE_END;
+}
+
+static int is_team(int index) { return index < SWARM_N_TEAM; }
+
+static float dist2(const swarm_agent_t *a, float x, float y)
+{
+    const float dx = a->x - x, dy = a->y - y;
+    return dx * dx + dy * dy;
+}
+
+void swarm_world_set_agent(swarm_world_t *w, uint8_t index, float x, float y, float vx, float vy, uint32_t now_ms)
+{
+    swarm_agent_t *a;
+    const swarm_agent_t *me = &w->agents[w->self];
+    if (index >= SWARM_N_AGENTS) return;
+    a = &w->agents[index];
+    a->x = x; a->y = y; a->vx = vx; a->vy = vy;
+    a->heard_ms = now_ms;
+    a->heard = 1;
+    /* own sensing of an evader (the sim's update_knowledge); relayed sightings are not modelled here */
+    if (index != w->self && !is_team(index) && is_team(w->self) && me->heard
+        && dist2(a, me->x, me->y) <= SWARM_SPEC_SENSING_RANGE * SWARM_SPEC_SENSING_RANGE) {
+        a->seen_x = x; a->seen_y = y; a->seen_vx = vx; a->seen_vy = vy;
+        a->seen_ms = now_ms;
+        a->seen = 1;
+    }
+}
+
+int swarm_world_set_obstacle(swarm_world_t *w, uint8_t slot, float x, float y, float r)
+{
+    if (slot >= SWARM_MAX_OBSTACLES) return 0;
+    w->obstacles[slot].x = x; w->obstacles[slot].y = y; w->obstacles[slot].r = r;
+    if (slot >= w->n_obstacles) w->n_obstacles = (uint8_t)(slot + 1);
+    return 1;
+}
+
+/* ------------------------------------------------------------------------------------------ radio */
+
+static void put_u32(uint8_t *p, uint32_t v)
+{
+    p[0] = (uint8_t)v; p[1] = (uint8_t)(v >> 8); p[2] = (uint8_t)(v >> 16); p[3] = (uint8_t)(v >> 24);
+}
+
+static uint32_t get_u32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
+}
+
+static void put_f32(uint8_t *p, float f) { uint32_t v; memcpy(&v, &f, 4); put_u32(p, v); }
+static float get_f32(const uint8_t *p) { uint32_t v = get_u32(p); float f; memcpy(&f, &v, 4); return f; }
+
+uint8_t swarm_msg_pack(const swarm_world_t *w, uint8_t *buf, uint8_t cap)
+{
+    const swarm_agent_t *me = &w->agents[w->self];
+    if (cap < SWARM_MSG_SIZE) return 0;
+    buf[0] = SWARM_MSG_MAGIC;
+    buf[1] = SWARM_MSG_VERSION;
+    buf[2] = w->self;
+    buf[3] = 0;
+    put_u32(buf + 4, SWARM_POLICY_SPEC_HASH32);
+    put_f32(buf + 8, me->x); put_f32(buf + 12, me->y); put_f32(buf + 16, me->vx); put_f32(buf + 20, me->vy);
+    return SWARM_MSG_SIZE;
+}
+
+int swarm_msg_receive(swarm_world_t *w, const uint8_t *buf, uint8_t size, uint32_t now_ms)
+{
+    if (size < SWARM_MSG_SIZE || buf[0] != SWARM_MSG_MAGIC || buf[1] != SWARM_MSG_VERSION) return 0;
+    if (get_u32(buf + 4) != SWARM_POLICY_SPEC_HASH32) return 0;  /* a drone flying another spec */
+    if (buf[2] >= SWARM_N_AGENTS || buf[2] == w->self) return 0;
+    swarm_world_set_agent(w, buf[2], get_f32(buf + 8), get_f32(buf + 12), get_f32(buf + 16), get_f32(buf + 20),
+                          now_ms);
+    return 1;
+}
+
+/* ------------------------------------------------------------------------------------ observation */
+
+/* rows x 5 (dx, dy, vx, vy, valid) of the nearest agents in [first, end) that are heard, recent, not self and
+ * within range (any distance with full observability). */
+static void fill_agents(const swarm_world_t *w, uint32_t now_ms, int first, int end, float range, int rows,
+                        float *out)
+{
+    const swarm_agent_t *me = &w->agents[w->self];
+    float d2[SWARM_N_AGENTS];
+    uint32_t taken = 0;
+    int i, s;
+    for (i = first; i < end; ++i) {
+        const swarm_agent_t *a = &w->agents[i];
+        d2[i] = -1.0f;
+        if (i == w->self || !a->heard || now_ms - a->heard_ms > SWARM_PEER_TIMEOUT_MS) continue;
+        d2[i] = dist2(a, me->x, me->y);
+        if (!SWARM_SPEC_FULL_OBSERVABILITY && d2[i] > range * range) d2[i] = -1.0f;
+    }
+    for (s = 0; s < rows; ++s) {
+        float *row = out + 5 * s;
+        int best = -1;
+        for (i = first; i < end; ++i) {
+            if (d2[i] < 0.0f || (taken >> i) & 1u) continue;
+            if (best < 0 || d2[i] < d2[best]) best = i;
+        }
+        if (best < 0) {
+            row[0] = row[1] = row[2] = row[3] = row[4] = 0.0f;
+            continue;
+        }
+        taken |= 1u << best;
+        row[0] = w->agents[best].x - me->x;
+        row[1] = w->agents[best].y - me->y;
+        row[2] = w->agents[best].vx;
+        row[3] = w->agents[best].vy;
+        row[4] = 1.0f;
+    }
+}
+
+static void fill_obstacles(const swarm_world_t *w, float *out)
+{
+    const swarm_agent_t *me = &w->agents[w->self];
+    float surf[SWARM_MAX_OBSTACLES];
+    uint32_t taken = 0;
+    int i, s;
+    for (i = 0; i < w->n_obstacles; ++i) {
+        const float dx = w->obstacles[i].x - me->x, dy = w->obstacles[i].y - me->y;
+        surf[i] = sqrtf(dx * dx + dy * dy) - w->obstacles[i].r;
+    }
+    for (s = 0; s < SWARM_OBS_OBSTACLES_ROWS; ++s) {
+        float *row = out + SWARM_OBS_OBSTACLES_COLS * s;
+        int best = -1;
+        for (i = 0; i < w->n_obstacles; ++i) {
+            if ((taken >> i) & 1u) continue;
+            if (best < 0 || surf[i] < surf[best]) best = i;
+        }
+        if (best < 0) {
+            row[SWARM_OBS_OBSTACLES_DX] = row[SWARM_OBS_OBSTACLES_DY] = row[SWARM_OBS_OBSTACLES_RADIUS] = 0.0f;
+            continue;
+        }
+        taken |= 1u << best;
+        row[SWARM_OBS_OBSTACLES_DX] = w->obstacles[best].x - me->x;
+        row[SWARM_OBS_OBSTACLES_DY] = w->obstacles[best].y - me->y;
+        row[SWARM_OBS_OBSTACLES_RADIUS] = w->obstacles[best].r;
+    }
+}
+
+#if !SWARM_POLICY_ROLE_IS_EVADER
+static void fill_targets(const swarm_world_t *w, uint32_t now_ms, float *out)
+{
+    const swarm_agent_t *me = &w->agents[w->self];
+    int k;
+    for (k = 0; k < SWARM_OBS_TARGETS_ROWS; ++k) {
+        const swarm_agent_t *e = &w->agents[SWARM_N_TEAM + k];
+        float *row = out + SWARM_OBS_TARGETS_COLS * k;
+        const int have = SWARM_SPEC_FULL_OBSERVABILITY ? e->heard : e->seen;
+        const uint32_t at = SWARM_SPEC_FULL_OBSERVABILITY ? e->heard_ms : e->seen_ms;
+        const float age = (float)(now_ms - at) * 0.001f;
+        if (!have || !(age < SWARM_SPEC_TARGET_MEMORY)) {
+            row[SWARM_OBS_TARGETS_DX] = row[SWARM_OBS_TARGETS_DY] = 0.0f;
+            row[SWARM_OBS_TARGETS_VX] = row[SWARM_OBS_TARGETS_VY] = 0.0f;
+            row[SWARM_OBS_TARGETS_AGE] = SWARM_SPEC_TARGET_MEMORY;
+            row[SWARM_OBS_TARGETS_KNOWN] = 0.0f;
+            continue;
+        }
+        row[SWARM_OBS_TARGETS_DX] = (SWARM_SPEC_FULL_OBSERVABILITY ? e->x : e->seen_x) - me->x;
+        row[SWARM_OBS_TARGETS_DY] = (SWARM_SPEC_FULL_OBSERVABILITY ? e->y : e->seen_y) - me->y;
+        row[SWARM_OBS_TARGETS_VX] = SWARM_SPEC_FULL_OBSERVABILITY ? e->vx : e->seen_vx;
+        row[SWARM_OBS_TARGETS_VY] = SWARM_SPEC_FULL_OBSERVABILITY ? e->vy : e->seen_vy;
+        row[SWARM_OBS_TARGETS_AGE] = age;
+        row[SWARM_OBS_TARGETS_KNOWN] = 1.0f;
+    }
+}
+#endif
+
+void swarm_build_observation(const swarm_world_t *w, uint32_t now_ms, float obs[SWARM_POLICY_OBS_DIM])
+{
+    const swarm_agent_t *me = &w->agents[w->self];
+    obs[SWARM_OBS_SELF_POS_START + SWARM_OBS_SELF_POS_X] = me->x;
+    obs[SWARM_OBS_SELF_POS_START + SWARM_OBS_SELF_POS_Y] = me->y;
+    obs[SWARM_OBS_SELF_VEL_START + SWARM_OBS_SELF_VEL_VX] = me->vx;
+    obs[SWARM_OBS_SELF_VEL_START + SWARM_OBS_SELF_VEL_VY] = me->vy;
+    fill_obstacles(w, obs + SWARM_OBS_OBSTACLES_START);
+#if SWARM_POLICY_ROLE_IS_EVADER
+    fill_agents(w, now_ms, 0, SWARM_N_TEAM, SWARM_SPEC_SENSING_RANGE, SWARM_OBS_THREATS_ROWS,
+                obs + SWARM_OBS_THREATS_START);
+    fill_agents(w, now_ms, SWARM_N_TEAM, SWARM_N_AGENTS, SWARM_SPEC_COMM_RANGE, SWARM_OBS_TEAMMATES_ROWS,
+                obs + SWARM_OBS_TEAMMATES_START);
+#else
+    fill_targets(w, now_ms, obs + SWARM_OBS_TARGETS_START);
+    fill_agents(w, now_ms, 0, SWARM_N_TEAM, SWARM_SPEC_COMM_RANGE, SWARM_OBS_TEAMMATES_ROWS,
+                obs + SWARM_OBS_TEAMMATES_START);
+#endif
+}
+
+/* ------------------------------------------------------------------------------- command, safety */
+
+void swarm_action_to_velocity(const float act[SWARM_POLICY_ACT_DIM], float x, float y, float v[2])
+{
+    const float lim = SWARM_SPEC_ARENA_HALF_WIDTH - SWARM_WALL_MARGIN;
+    float a0 = act[0], a1 = act[1], n2;
+    /* NaN (a broken policy) becomes a stop, as in runtime.world.World.sanitize_actions */
+    if (!(a0 == a0) || !(a1 == a1)) a0 = a1 = 0.0f;
+    a0 = a0 > 1.0f ? 1.0f : (a0 < -1.0f ? -1.0f : a0);
+    a1 = a1 > 1.0f ? 1.0f : (a1 < -1.0f ? -1.0f : a1);
+    v[0] = a0 * SWARM_SPEC_MAX_SPEED;
+    v[1] = a1 * SWARM_SPEC_MAX_SPEED;
+    n2 = v[0] * v[0] + v[1] * v[1];
+    if (n2 > SWARM_SPEC_MAX_SPEED * SWARM_SPEC_MAX_SPEED) {
+        const float k = SWARM_SPEC_MAX_SPEED / sqrtf(n2);
+        v[0] *= k;
+        v[1] *= k;
+    }
+    if ((x >= lim && v[0] > 0.0f) || (x <= -lim && v[0] < 0.0f)) v[0] = 0.0f;
+    if ((y >= lim && v[1] > 0.0f) || (y <= -lim && v[1] < 0.0f)) v[1] = 0.0f;
+}
+
+int swarm_deadman_alive(swarm_deadman_t *d, uint16_t beat, uint32_t now_ms)
+{
+    if (beat != d->last_beat) {
+        d->last_beat = beat;
+        d->last_change_ms = now_ms;
+        d->armed = 1;
+    }
+    return d->armed && now_ms - d->last_change_ms <= SWARM_DEADMAN_MS;
+}
