@@ -1,0 +1,168 @@
+import json
+import shutil
+import tracemalloc
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+
+from runtime.policy import (ModelCorrupted, ModelMetadataError, ModelNotFound, ModelShapeError, OnnxPolicy,
+                            SpecMismatch, load_models, read_manifest)
+from runtime.spec import Role, SwarmSpec
+from runtime_fixtures import exported
+
+
+@pytest.fixture(scope="module")
+def models():
+    return exported()[1]
+
+
+def _obs(spec, role, n, seed=0):
+    lo, hi = spec.layout(role).bounds()
+    return np.random.default_rng(seed).uniform(lo, hi, (n, len(lo)))
+
+
+def _edit(src, dst, fn):
+    model = onnx.load(str(src))
+    fn(model)
+    onnx.save(model, str(dst))
+    return dst
+
+
+def test_act_matches_plain_onnxruntime_and_batch(models):
+    spec = SwarmSpec()
+    for name, role in (("pursuer_0", Role.PURSUER), ("evader_1", Role.EVADER)):
+        pol = OnnxPolicy(models / f"{name}.onnx", spec=spec)
+        assert pol.role is role and pol.agent_id == name and pol.obs_dim == spec.obs_dim(role)
+        x = _obs(spec, role, 200)
+        ref = ort.InferenceSession(str(models / f"{name}.onnx")).run(None, {"obs": x.astype(np.float32)})[0]
+        one = np.stack([pol.act(o) for o in x])
+        cmd = np.zeros(2)
+        assert pol.act(x[5], out=cmd) is cmd and np.allclose(cmd, ref[5], atol=1e-6)
+        assert np.allclose(one, ref, atol=1e-6)
+        assert np.allclose(pol.act_batch(x), ref, atol=1e-6)
+        assert np.allclose(pol.act_batch(x[:3]), ref[:3], atol=1e-6)
+        assert pol.faults == 0 and (np.abs(one) <= 1).all()
+    with pytest.raises(ValueError, match="shape"):
+        pol.act(np.zeros(3))
+
+
+@pytest.mark.filterwarnings("ignore:overflow")
+def test_nonfinite_observation_returns_safe_action_and_counts(models):
+    spec = SwarmSpec()
+    pol = OnnxPolicy(models / "scout_0.onnx", spec=spec)
+    x = _obs(spec, Role.SCOUT, 4)
+    cmd = np.full(2, 9.0)
+    for bad in (np.nan, np.inf, -np.inf, 1e300):
+        y = x[0].copy()
+        y[3] = bad
+        assert np.array_equal(pol.act(y), [0.0, 0.0])
+        pol.act(y, out=cmd)
+        assert np.array_equal(cmd, [0.0, 0.0])
+    assert pol.faults == 8
+    xb = x.copy()
+    xb[1, 0] = np.nan
+    xb[3, 7] = np.inf
+    out = pol.act_batch(xb)
+    assert np.array_equal(out[[1, 3]], np.zeros((2, 2))) and np.allclose(out[[0, 2]], pol.act_batch(x[[0, 2]]))
+    assert pol.faults == 10
+    assert np.abs(pol.act(x[0])).sum() > 0  # and it recovers
+
+
+def test_nonfinite_output_returns_safe_action(models, tmp_path):
+    def nan_bias(m):
+        last = [i for i in m.graph.initializer if i.name.endswith("4.bias")][0]
+        arr = onnx.numpy_helper.to_array(last).copy()
+        arr[1] = np.nan
+        last.CopyFrom(onnx.numpy_helper.from_array(arr, last.name))
+    path = _edit(models / "pursuer_1.onnx", tmp_path / "nan.onnx", nan_bias)
+    spec = SwarmSpec()
+    pol = OnnxPolicy(path, spec=spec)
+    x = _obs(spec, Role.PURSUER, 5)
+    assert np.array_equal(pol.act(x[0]), [0.0, 0.0]) and pol.faults == 1
+    assert np.array_equal(pol.act_batch(x), np.zeros((5, 2))) and pol.faults == 6
+    assert "output" in pol.last_fault
+
+
+def test_load_errors_are_named_and_say_how_to_fix(models, tmp_path):
+    spec = SwarmSpec()
+    with pytest.raises(ModelNotFound, match="swarm-export onnx"):
+        OnnxPolicy(tmp_path / "missing.onnx", spec=spec)
+    bad = tmp_path / "garbage.onnx"
+    bad.write_bytes(b"\x08\x07not a protobuf" * 10)
+    with pytest.raises(ModelCorrupted, match="re-export"):
+        OnnxPolicy(bad, spec=spec)
+    truncated = tmp_path / "truncated.onnx"
+    truncated.write_bytes((models / "pursuer_0.onnx").read_bytes()[:5000])
+    with pytest.raises(ModelCorrupted):
+        OnnxPolicy(truncated, spec=spec)
+    with pytest.raises(ModelCorrupted, match="sha256"):
+        OnnxPolicy(models / "pursuer_0.onnx", spec=spec, sha256="0" * 64)
+    other = SwarmSpec.from_dict({"sensing": {"n_teammates_observed": 3}})
+    with pytest.raises(SpecMismatch, match=f"{spec.hash}.*45 floats.*{other.hash}.*40 floats"):
+        OnnxPolicy(models / "pursuer_0.onnx", spec=other)
+    with pytest.raises(SpecMismatch, match="pursuer actor.*evader"):
+        OnnxPolicy(models / "pursuer_0.onnx", spec=spec, role=Role.EVADER)
+
+    def relabel(m):  # a pursuer graph (45 inputs) claiming to be an evader (38)
+        for p in m.metadata_props:
+            if p.key == "role":
+                p.value = "evader"
+    with pytest.raises(ModelShapeError, match=r"\[batch, 38\]"):
+        OnnxPolicy(_edit(models / "pursuer_0.onnx", tmp_path / "relabel.onnx", relabel), spec=spec)
+
+    def rename_output(m):
+        m.graph.output[0].name = "act"
+        m.graph.node[-1].output[0] = "act"
+    with pytest.raises(ModelShapeError, match="'action'"):
+        OnnxPolicy(_edit(models / "pursuer_0.onnx", tmp_path / "out.onnx", rename_output), spec=spec)
+
+    def strip(m):
+        del m.metadata_props[:]
+    with pytest.raises(ModelMetadataError, match="spec_hash"):
+        OnnxPolicy(_edit(models / "pursuer_0.onnx", tmp_path / "strip.onnx", strip), spec=spec)
+
+
+def test_models_folder(models, tmp_path):
+    man, pols = load_models(models)
+    assert man.spec.hash == SwarmSpec().hash and [p.agent_id for p in pols] == list(SwarmSpec().team.agent_ids())
+    assert man.evaluation == {"tracking_rate": 0.5}
+    with pytest.raises(ModelNotFound, match="does not exist"):
+        read_manifest(tmp_path / "nothing")
+    with pytest.raises(ModelNotFound, match="manifest.json"):
+        read_manifest(tmp_path)
+    copy = tmp_path / "copy"
+    shutil.copytree(models, copy)
+    doc = json.loads((copy / "manifest.json").read_text())
+    doc["spec"]["arena"]["half_width"] = 4.0
+    (copy / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(ModelMetadataError, match="edited"):
+        read_manifest(copy)
+    shutil.copy(models / "manifest.json", copy / "manifest.json")
+    with (copy / "scout_2.onnx").open("r+b") as fh:
+        fh.seek(2000)
+        fh.write(b"\x00\x01\x02\x03")
+    with pytest.raises(ModelCorrupted, match="scout_2"):
+        load_models(copy)
+    with pytest.raises(SpecMismatch):
+        read_manifest(models, spec=SwarmSpec.from_dict({"arena": {"half_width": 4.0}}))
+
+
+def test_act_allocates_nothing_in_steady_state(models):
+    spec = SwarmSpec()
+    pol = OnnxPolicy(models / "pursuer_2.onnx", spec=spec)
+    x = _obs(spec, Role.PURSUER, 1)[0]
+    cmd = np.zeros(2)
+    for _ in range(50):
+        pol.act(x, out=cmd)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.take_snapshot()
+        for _ in range(2000):
+            pol.act(x, out=cmd)
+        after = tracemalloc.take_snapshot()
+    finally:
+        tracemalloc.stop()
+    grown = sum(s.size_diff for s in after.compare_to(before, "filename") if s.size_diff > 0)
+    assert grown < 4096, grown
