@@ -54,10 +54,8 @@ class MetricsAccumulator:
         self.res = 2 * hw / self.cells
         centres = -hw + (np.arange(self.cells) + 0.5) * self.res
         self.cx, self.cy = np.meshgrid(centres, centres, indexing="xy")  # [H, W], row = y
-        r = spec.sensing.sensing_range
-        half = int(math.ceil(r / self.res)) + 1
-        off = np.arange(-half, half + 1)
-        self.off_y, self.off_x = [a.ravel() for a in np.meshgrid(off, off, indexing="ij")]
+        half = int(math.ceil(spec.sensing.sensing_range / self.res)) + 1
+        self.row_off = np.arange(-half, half + 1)
         # collision pairs: teammates with teammates, evaders with evaders; capture pairs: team x evaders
         n = spec.n_agents
         team = np.arange(n) < self.nt
@@ -117,23 +115,28 @@ class MetricsAccumulator:
             self._prev_obstacle = obstacle_contacts.copy()
 
     def _mark_coverage(self, pos: np.ndarray) -> np.ndarray:
-        """Marks cells within sensing range of ``pos`` [B, M, 2] as visited; returns instant coverage [B]."""
-        b, m = pos.shape[:2]
+        """Marks cells within sensing range of ``pos`` [B, M, 2] as visited; returns instant coverage [B].
+
+        In each raster row the cells whose centres lie in an agent's disc form one run ``[x0, x1]``; runs are
+        painted with a difference array and a cumulative sum (the same cells as testing every centre, ~5x
+        faster than a square stencil)."""
+        b = pos.shape[0]
         hw = self.spec.arena.half_width
-        r2 = self.spec.sensing.sensing_range ** 2
-        ix = np.floor((pos[..., 0] + hw) / self.res).astype(np.int64)
-        iy = np.floor((pos[..., 1] + hw) / self.res).astype(np.int64)
-        xs = ix[..., None] + self.off_x  # [B, M, S]
-        ys = iy[..., None] + self.off_y
-        ok = (xs >= 0) & (xs < self.cells) & (ys >= 0) & (ys < self.cells)
-        xs_c = np.clip(xs, 0, self.cells - 1)
-        ys_c = np.clip(ys, 0, self.cells - 1)
-        cxv = -hw + (xs_c + 0.5) * self.res
-        cyv = -hw + (ys_c + 0.5) * self.res
-        ok &= (cxv - pos[..., 0, None]) ** 2 + (cyv - pos[..., 1, None]) ** 2 <= r2
-        bi = np.broadcast_to(np.arange(b)[:, None, None], ok.shape)
-        now = np.zeros((b, self.cells, self.cells), dtype=bool)
-        now[bi[ok], ys_c[ok], xs_c[ok]] = True
+        r = self.spec.sensing.sensing_range
+        c, res = self.cells, self.res
+        iy = np.floor((pos[..., 1] + hw) / res).astype(np.int64)
+        rows = iy[..., None] + self.row_off  # [B, M, R]
+        dy = -hw + (rows + 0.5) * res - pos[..., 1, None]
+        h2 = r * r - dy * dy
+        h = np.sqrt(np.maximum(h2, 0.0))
+        px = pos[..., 0, None]
+        x0 = np.maximum(np.ceil((px - h + hw) / res - 0.5), 0).astype(np.int64)
+        x1 = np.minimum(np.floor((px + h + hw) / res - 0.5), c - 1).astype(np.int64)
+        ok = (h2 >= 0) & (rows >= 0) & (rows < c) & (x0 <= x1)
+        base = (np.arange(b)[:, None, None] * c + rows) * (c + 1)
+        n = b * c * (c + 1)
+        diff = np.bincount((base + x0)[ok], minlength=n) - np.bincount((base + x1 + 1)[ok], minlength=n)
+        now = np.cumsum(diff.reshape(b, c, c + 1)[..., :c], axis=-1) > 0
         now &= self.free[:b]
         self.visited[:b] |= now
         return now.reshape(b, -1).sum(-1) / self.free_count[:b]
