@@ -57,9 +57,19 @@ def host_cc() -> str:
 
 def build_host_library(c_files: list[Path], out: Path, extra: tuple[str, ...] = ("-O2",),
                        warn: tuple[str, ...] = WARN_FLAGS) -> Path:
-    """Compile ``c_files`` into a shared library ``out`` with the project's warning flags."""
-    cmd = [host_cc(), *warn, *extra, "-shared", "-fPIC", "-o", str(out), *map(str, c_files), "-lm"]
-    _run(cmd, "host compile of the generated C")
+    """Compile ``c_files`` into a shared library ``out`` with the project's warning flags.
+
+    Compiling and linking are separate steps on purpose: linking a shared library with ``-ffast-math`` pulls in
+    ``crtfastmath.o``, whose constructor turns on flush-to-zero for the whole Python process the moment ctypes
+    loads it (numpy and hypothesis then see no subnormals). The objects keep the optimisation; the link does not.
+    """
+    cc = host_cc()
+    objects = []
+    for i, src in enumerate(c_files):
+        obj = out.with_name(f"{out.stem}.{i}.o")
+        _run([cc, *warn, *extra, "-fPIC", "-c", "-o", str(obj), str(src)], "host compile of the generated C")
+        objects.append(str(obj))
+    _run([cc, "-shared", "-o", str(out), *objects, "-lm"], "host link of the generated C")
     return out
 
 
