@@ -178,9 +178,9 @@ class ClassicalPursuers:
     """Repulsion at an obstacle's surface [normalized action]."""
     wall_reach = 0.15
     """Distance from a wall [m] where outward motion is damped (pursuers follow evaders to the wall)."""
-    separation_reach = 0.3
+    separation_reach = 0.5
     """Centre distance [m] under which teammates push apart (contact is at 0.15 m)."""
-    separation_gain = 1.5
+    separation_gain = 3.0
     """Teammate push at zero distance [normalized action]."""
     lloyd_gain = 2.0
     """Scouts' commanded speed per metre to their cell's centroid [1/s, normalized action]."""

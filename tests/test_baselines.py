@@ -1,0 +1,115 @@
+import itertools
+
+import numpy as np
+import pytest
+
+from runtime.spec import Role, SwarmSpec
+from training.baselines import (ClassicalPursuers, FleeingEvaders, Policy, RandomPolicy, TeamPolicy,
+                                assign_targets, make_policy)
+from training.config import ExperimentConfig
+from training.env import PursuitEnv
+from training.evaluate import evaluate
+
+
+@pytest.fixture(scope="module")
+def role_based():
+    return ExperimentConfig.from_toml("configs/role_based.toml")
+
+
+@pytest.mark.parametrize("p, e", [(5, 2), (6, 3), (2, 2), (7, 3)])
+def test_hungarian_assignment_covers_every_evader_evenly(p, e):
+    rng = np.random.default_rng(p * 10 + e)
+    target = assign_targets(rng.uniform(-3, 3, (64, p, 2)), rng.uniform(-3, 3, (64, e, 2)))
+    counts = np.stack([(target == k).sum(1) for k in range(e)], axis=1)  # [B, E]
+    assert (counts >= 1).all()
+    assert (counts <= -(-p // e)).all()
+    assert (counts.sum(1) == p).all()
+
+
+def test_hungarian_assignment_is_optimal():
+    rng = np.random.default_rng(0)
+    pp, ep = rng.uniform(-3, 3, (20, 3, 2)), rng.uniform(-3, 3, (20, 2, 2))
+    got = assign_targets(pp, ep)
+    d = np.linalg.norm(pp[:, :, None] - ep[:, None], axis=-1)
+    for b in range(20):
+        feasible = [a for a in itertools.product(range(2), repeat=3) if max(a.count(0), a.count(1)) <= 2]
+        best = min(sum(d[b, i, a[i]] for i in range(3)) for a in feasible)
+        assert sum(d[b, i, got[b, i]] for i in range(3)) == pytest.approx(best)
+
+
+def test_fewer_pursuers_than_evaders_get_distinct_targets():
+    rng = np.random.default_rng(1)
+    target = assign_targets(rng.uniform(-3, 3, (32, 2, 2)), rng.uniform(-3, 3, (32, 3, 2)))
+    assert (target[:, 0] != target[:, 1]).all()
+
+
+class _Const:
+    def __init__(self, v):
+        self.v = v
+
+    def act(self, obs, env):
+        return np.full((obs.shape[0], env.n_agents, 2), self.v)
+
+
+def test_team_policy_takes_team_rows_and_evader_rows_from_different_policies():
+    spec = SwarmSpec()
+    env = PursuitEnv(spec, n_envs=2, seed=0)
+    obs = env.reset()
+    pol = TeamPolicy(_Const(0.5), _Const(-0.25))
+    assert isinstance(pol, Policy) and isinstance(RandomPolicy(0), Policy)
+    a = pol.act(obs, env)
+    nt = spec.team.n_team
+    assert (a[:, :nt] == 0.5).all() and (a[:, nt:] == -0.25).all()
+
+
+@pytest.mark.parametrize("team", [(5, 5, 2), (5, 0, 2), (0, 3, 2), (2, 1, 3)])
+def test_classical_actions_are_bounded_and_finite(team):
+    p, s, e = team
+    spec = SwarmSpec.from_dict({"team": {"n_pursuers": p, "n_scouts": s, "n_evaders": e},
+                                "timing": {"episode_steps": 30}})
+    env = PursuitEnv(spec, n_envs=4, seed=1)
+    obs = env.reset()
+    pol = make_policy("classical")
+    for _ in range(30):
+        a = pol.act(obs, env)
+        assert a.shape == (4, spec.n_agents, 2)
+        assert np.isfinite(a).all() and (np.abs(a) <= 1.0).all()
+        obs, *_ = env.step(a)
+
+
+def test_classical_beats_random_by_a_clear_margin(role_based):
+    classical = evaluate(role_based, make_policy("classical", seed=3), 20, seed=3, n_envs=20, progress=False)
+    random = evaluate(role_based, make_policy("random", seed=3), 20, seed=3, n_envs=20, progress=False)
+    assert classical["episodes"] == random["episodes"] == 20
+    assert classical["mean_min_dist"] < 0.5 * random["mean_min_dist"]
+    assert classical["tracking_rate"] > random["tracking_rate"] + 0.2
+    assert classical["coverage"] > random["coverage"]
+
+
+class _RandomScouts:
+    """Classical pursuers, random scouts."""
+
+    def __init__(self):
+        self.classical, self.random = ClassicalPursuers(), RandomPolicy(0)
+
+    def act(self, obs, env):
+        a = self.classical.act(obs, env)
+        sc = list(env.spec.team.indices(Role.SCOUT))
+        a[:, sc] = self.random.act(obs, env)[:, sc]
+        return a
+
+
+def test_lloyd_scouts_cover_more_than_random_scouts(role_based):
+    lloyd = evaluate(role_based, TeamPolicy(ClassicalPursuers(), FleeingEvaders()), 20, seed=5, n_envs=20,
+                     progress=False)
+    rand = evaluate(role_based, TeamPolicy(_RandomScouts(), FleeingEvaders()), 20, seed=5, n_envs=20,
+                    progress=False)
+    assert lloyd["coverage"] > rand["coverage"] + 0.04
+
+
+def test_evaluate_runs_exactly_the_episodes_asked_and_is_reproducible(role_based):
+    a = evaluate(role_based, make_policy("random", seed=0), 7, seed=11, n_envs=3, progress=False)
+    b = evaluate(role_based, make_policy("random", seed=0), 7, seed=11, n_envs=3, progress=False)
+    assert a["episodes"] == 7
+    a.pop("wall_s"), b.pop("wall_s")
+    assert a == b
