@@ -71,10 +71,15 @@ def add_evaluate(sub: Any) -> None:
     p.add_argument("--json", metavar="PATH", help="write the metrics and the run's settings to this JSON file")
     p.add_argument("--plot", metavar="PNG", help="also draw one episode (seed S) to this PNG")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from training.learned_eval import add_learned_arguments
+    add_learned_arguments(p)
     p.set_defaults(func=cmd_evaluate)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    if args.run or args.models:
+        from training.learned_eval import cmd_evaluate_learned
+        return cmd_evaluate_learned(args)
     from training.baselines import make_policy
     from training.evaluate import EVAL_SEED_OFFSET, PAPER, evaluate, format_table
 
@@ -147,7 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train, evaluate and draw the heterogeneous pursuit-evasion-exploration swarm.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    adders: list[Callable[[Any], None]] = [add_evaluate, add_plot]
+    from training.sweep import add_sweep_parser
+    from training.train import add_train_parser
+    adders: list[Callable[[Any], None]] = [add_train_parser, add_evaluate, add_plot, add_sweep_parser]
     for add in adders:
         add(sub)
     return parser

@@ -53,7 +53,11 @@ class RewardConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Role-based MADDPG hyper-parameters (see training.maddpg)."""
+    """Role-based MADDPG hyper-parameters (see ``training.maddpg`` and ``training.train``).
+
+    Time is counted in env steps: one env step advances all ``n_envs`` environments by one control period
+    and yields ``n_envs`` joint transitions (frames).
+    """
 
     steps: int = 200_000
     """Environment steps per env to train for (total frames = steps x n_envs)."""
@@ -61,11 +65,82 @@ class TrainConfig:
     """Environments stepped in parallel."""
     seed: int = 0
     """Seed of the world, the networks and the replay sampling."""
+    gamma: float = 0.95
+    """Discount factor per control period [1] (the original MADDPG's 0.95)."""
+    tau: float = 0.01
+    """Soft target update rate per gradient update: target <- tau x online + (1 - tau) x target [1]."""
+    actor_lr: float = 1e-3
+    """Adam learning rate of the actors [1]."""
+    critic_lr: float = 1e-3
+    """Adam learning rate of the critics [1]."""
+    actor_hidden: tuple[int, ...] = (64, 64)
+    """Hidden layer widths of every actor (the export contract expects two layers)."""
+    critic_hidden: tuple[int, ...] = (64, 64)
+    """Hidden layer widths of every centralized critic."""
+    batch_size: int = 1024
+    """Joint transitions per gradient update."""
+    buffer_size: int = 200_000
+    """Replay capacity in joint transitions (preallocated; oldest overwritten first)."""
+    warmup_steps: int = 50
+    """Env steps with uniformly random actions before learning starts."""
+    update_every: int = 1
+    """Env steps between two rounds of gradient updates."""
+    updates_per_round: int = 1
+    """Gradient updates (critics, then actors, then targets) per round."""
+    noise_std: float = 0.3
+    """Initial std of the Gaussian exploration noise added to the normalised actions [1]."""
+    noise_std_final: float = 0.05
+    """Exploration noise std reached after ``noise_decay_steps`` (linear decay) [1]."""
+    noise_decay_steps: int = 10_000
+    """Env steps over which the exploration noise decays to ``noise_std_final``."""
+    grad_clip: float = 0.5
+    """Max global gradient norm, per agent, of every actor and critic update (0 disables)."""
+    action_reg: float = 1e-3
+    """Weight of the penalty on squared pre-tanh actor outputs (keeps tanh out of saturation) [1]."""
+    reward_scale: float = 0.1
+    """Multiplies every reward in the learner only (the env's rewards stay the paper's) [1]."""
+    evaders: str = "learned"
+    """"learned": evaders train at the same time (competitive co-training); "static": evaders hold still
+    (their actors are not trained; used for the small learning check)."""
+    log_every: int = 100
+    """Env steps between two rows of metrics.csv and TensorBoard scalars."""
+    checkpoint_every: int = 2_000
+    """Env steps between two full training-state checkpoints (also written on Ctrl-C and at the end)."""
+    checkpoint_buffer: bool = True
+    """Also save the replay buffer with each checkpoint, so that --resume continues exactly."""
+    threads: int = 2
+    """torch CPU threads."""
+    device: str = "cpu"
+    """torch device of the networks and the replay buffer: "cpu", "cuda" or "cuda:K"."""
 
     def __post_init__(self) -> None:
-        for name in ("steps", "n_envs"):
+        for name in ("steps", "n_envs", "batch_size", "buffer_size", "update_every", "log_every",
+                     "checkpoint_every", "threads", "noise_decay_steps"):
             if getattr(self, name) < 1:
                 raise SpecError(f"train.{name}: must be >= 1, got {getattr(self, name)!r}")
+        for name in ("warmup_steps", "updates_per_round"):
+            if getattr(self, name) < 0:
+                raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if not 0.0 < self.gamma <= 1.0:
+            raise SpecError(f"train.gamma: must be in (0, 1], got {self.gamma!r}")
+        if not 0.0 < self.tau <= 1.0:
+            raise SpecError(f"train.tau: must be in (0, 1], got {self.tau!r}")
+        for name in ("actor_lr", "critic_lr", "reward_scale"):
+            if not getattr(self, name) > 0:
+                raise SpecError(f"train.{name}: must be > 0, got {getattr(self, name)!r}")
+        for name in ("noise_std", "noise_std_final", "grad_clip", "action_reg"):
+            if not getattr(self, name) >= 0:
+                raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
+        for name in ("actor_hidden", "critic_hidden"):
+            widths = getattr(self, name)
+            if not widths or any(w < 1 for w in widths):
+                raise SpecError(f"train.{name}: must be a non-empty list of positive widths, got {list(widths)!r}")
+        if self.batch_size > self.buffer_size:
+            raise SpecError(f"train.batch_size ({self.batch_size}) exceeds train.buffer_size ({self.buffer_size})")
+        if self.evaders not in ("learned", "static"):
+            raise SpecError(f"train.evaders: {self.evaders!r} is not one of 'learned', 'static'")
+        if not (self.device == "cpu" or self.device == "cuda" or self.device.startswith("cuda:")):
+            raise SpecError(f"train.device: {self.device!r} is not 'cpu', 'cuda' or 'cuda:K'")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,448 @@
+"""The training loop: many envs stepped together, batched MADDPG updates, logs, checkpoints, resume.
+
+A run folder holds:
+
+- ``config.toml``: the resolved experiment config (every field, with command-line overrides applied);
+- ``run.json``: git revision, command line, start times; ``summary.json``: counts and speeds at the end;
+- ``metrics.csv``: one row every ``train.log_every`` env steps, columns ``CSV_COLUMNS`` (rewards are the
+  env's, unscaled, averaged per agent of the role over the window; ``return_*`` are mean episode returns of
+  episodes finished in the window; distances are pursuer-evader centre distances [m] as in runtime.metrics);
+- ``tb/``: the same scalars as TensorBoard events;
+- ``checkpoints/state.pt`` (+ ``buffer.pt``): the full training state for ``--resume``;
+- ``actors.pt``: the per-agent actors in the ``training.checkpoint`` format (what export and evaluation read),
+  rewritten with every checkpoint.
+
+Episodes in flight when a run is interrupted are not saved; a resumed run starts fresh episodes.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import logging
+import math
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from runtime.spec import Role
+from training.checkpoint import save_actors
+from training.config import ExperimentConfig
+from training.env import PursuitEnv
+from training.maddpg import MADDPG, ReplayBuffer
+
+log = logging.getLogger(__name__)
+
+ROLES = ("pursuer", "scout", "evader")
+CSV_COLUMNS = ("step", "frames", "updates", "time_s", "fps", "updates_per_s", "noise_std",
+               *(f"reward_{r}" for r in ROLES), *(f"return_{r}" for r in ROLES),
+               "min_dist", "avg_dist", "max_dist", "captures_per_step", "episodes",
+               "critic_loss", "actor_loss", "q_mean")
+STATE_FORMAT = 1
+
+
+class RunError(RuntimeError):
+    """A run folder cannot be used as asked (missing checkpoint, mismatching config)."""
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    env_steps: int
+    frames: int
+    updates: int
+    train_time_s: float
+    interrupted: bool
+
+    @property
+    def fps(self) -> float:
+        return self.frames / max(self.train_time_s, 1e-9)
+
+    @property
+    def updates_per_s(self) -> float:
+        return self.updates / max(self.train_time_s, 1e-9)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"env_steps": self.env_steps, "frames": self.frames, "updates": self.updates,
+                "train_time_s": round(self.train_time_s, 3), "fps": round(self.fps, 2),
+                "updates_per_s": round(self.updates_per_s, 3), "interrupted": self.interrupted}
+
+
+# ------------------------------------------------------------------------------------------- helpers
+
+
+def git_revision(cwd: Path | None = None) -> str:
+    """``<sha>`` or ``<sha>-dirty`` of the source tree, ``unknown`` outside a git checkout."""
+    where = cwd or Path(__file__).resolve().parent.parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True,
+                             timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=where,
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return sha + ("-dirty" if dirty else "")
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ValueError(f"cannot write non-finite {v!r} to TOML")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dump_toml(doc: dict[str, Any], prefix: str = "") -> str:
+    """A nested dict of scalars and lists as TOML (what ``ExperimentConfig.to_dict`` gives)."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            name = f"{prefix}.{k}" if prefix else k
+            if any(not isinstance(x, dict) for x in v.values()):
+                lines += ["", f"[{name}]"]
+            lines.append(dump_toml(v, name).rstrip("\n"))
+    return "\n".join(x for x in lines if x is not None).strip() + "\n"
+
+
+def _save_torch(obj: Any, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    tmp.replace(path)
+
+
+class _Window:
+    """Sums of the logged quantities since the last CSV row."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.n = 0
+        self.reward = {r: 0.0 for r in ROLES}
+        self.dist = np.zeros(3)
+        self.captures = 0.0
+        self.returns: dict[str, list[float]] = {r: [] for r in ROLES}
+        self.losses: dict[str, float] = {}
+        self.n_updates = 0
+
+
+# ---------------------------------------------------------------------------------------------- loop
+
+
+class Trainer:
+    """Owns the env, the learner, the buffer and the run folder of one training run."""
+
+    def __init__(self, cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> None:
+        self.cfg = cfg
+        self.tc = tc = cfg.train
+        self.out = Path(out)
+        torch.set_num_threads(tc.threads)
+        if tc.device.startswith("cuda") and not torch.cuda.is_available():
+            raise RunError(f"train.device = {tc.device!r} but torch sees no CUDA device: use --device cpu")
+        self.spec = cfg.spec
+        self.env = PursuitEnv(cfg.spec, cfg.rewards, n_envs=tc.n_envs, seed=tc.seed)
+        self.agent = MADDPG(cfg.spec, tc)
+        self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
+        self.sample_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 1)
+        self.noise_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 2)
+        self.np_rng = np.random.default_rng(tc.seed + 3)
+        self.env_step = 0
+        self.elapsed = 0.0  # training wall time of previous sessions [s]
+        team = cfg.spec.team
+        self.role_idx = {r.label: np.asarray(team.indices(r)) for r in Role if len(team.indices(r))}
+        self.pursuers = (np.asarray(team.indices(Role.PURSUER)) if team.n_pursuers
+                         else np.asarray(team.indices(Role.SCOUT)))
+        self.returns = np.zeros((tc.n_envs, cfg.spec.n_agents))
+        self.ckpt_dir = self.out / "checkpoints"
+        if resume:
+            self._load_checkpoint()
+        else:
+            self._init_run_folder()
+
+    # -- run folder ---------------------------------------------------------------------------------
+    def _init_run_folder(self) -> None:
+        if (self.ckpt_dir / "state.pt").exists():
+            raise RunError(f"{self.out} already holds a run: pass --resume to continue it, or choose another --out")
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "config.toml").write_text(dump_toml(self.cfg.to_dict()))
+        run = {"git_revision": git_revision(), "command": sys.argv, "started_utc": _utc_now(),
+               "spec_hash": self.spec.hash, "torch": torch.__version__}
+        (self.out / "run.json").write_text(json.dumps(run, indent=2) + "\n")
+        with (self.out / "metrics.csv").open("w", newline="") as fh:
+            csv.writer(fh).writerow(CSV_COLUMNS)
+
+    def _load_checkpoint(self) -> None:
+        path = self.ckpt_dir / "state.pt"
+        if not path.is_file():
+            raise RunError(f"nothing to resume in {self.out}: {path} does not exist")
+        st = torch.load(path, map_location=self.tc.device, weights_only=False)
+        if st.get("format") != STATE_FORMAT:
+            raise RunError(f"{path} has training-state format {st.get('format')}, this code reads {STATE_FORMAT}")
+        if st["spec_hash"] != self.spec.hash:
+            raise RunError(f"{path} was trained with spec {st['spec_hash']}, the config gives {self.spec.hash}: "
+                           f"resume with the run's own config.toml")
+        self.agent.load_state_dict(st["agent"])
+        self.env_step = int(st["env_step"])
+        self.elapsed = float(st["elapsed"])
+        self.sample_gen.set_state(st["sample_gen"].cpu() if self.tc.device == "cpu" else st["sample_gen"])
+        self.noise_gen.set_state(st["noise_gen"].cpu() if self.tc.device == "cpu" else st["noise_gen"])
+        self.np_rng.bit_generator.state = st["np_rng"]
+        self.env.world.rng.bit_generator.state = st["world_rng"]
+        bpath = self.ckpt_dir / "buffer.pt"
+        if bpath.is_file():
+            self.buffer.load_state_dict(torch.load(bpath, map_location=self.tc.device, weights_only=True))
+        else:
+            log.warning("no replay buffer saved in %s: refilling it from scratch", self.ckpt_dir)
+        self._truncate_csv(self.env_step)
+        run = json.loads((self.out / "run.json").read_text()) if (self.out / "run.json").is_file() else {}
+        run.setdefault("resumed", []).append({"at_step": self.env_step, "utc": _utc_now(),
+                                              "git_revision": git_revision(), "command": sys.argv})
+        (self.out / "run.json").write_text(json.dumps(run, indent=2) + "\n")
+        log.info("resumed %s at env step %d (%d updates, %d transitions in the buffer)", self.out, self.env_step,
+                 self.agent.updates, len(self.buffer))
+
+    def _truncate_csv(self, step: int) -> None:
+        path = self.out / "metrics.csv"
+        rows = list(csv.reader(path.open())) if path.is_file() else []
+        keep = [CSV_COLUMNS] + [r for r in rows[1:] if r and int(r[0]) <= step]
+        with path.open("w", newline="") as fh:
+            csv.writer(fh).writerows(keep)
+
+    def save_checkpoint(self) -> None:
+        self.ckpt_dir.mkdir(parents=True, exist_ok=True)
+        st = {"format": STATE_FORMAT, "spec_hash": self.spec.hash, "agent": self.agent.state_dict(),
+              "env_step": self.env_step, "elapsed": self.elapsed + self._session_time(),
+              "sample_gen": self.sample_gen.get_state(), "noise_gen": self.noise_gen.get_state(),
+              "np_rng": self.np_rng.bit_generator.state, "world_rng": self.env.world.rng.bit_generator.state,
+              "config": self.cfg.to_dict()}
+        if self.tc.checkpoint_buffer:
+            _save_torch(self.buffer.state_dict(), self.ckpt_dir / "buffer.pt")
+        _save_torch(st, self.ckpt_dir / "state.pt")
+        save_actors(self.out / "actors.pt", self.spec, self.agent.to_actors(), self.cfg.to_dict(),
+                    {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
+                     "run": str(self.out)})
+        log.info("checkpoint at env step %d", self.env_step)
+
+    # -- the loop -----------------------------------------------------------------------------------
+    def _session_time(self) -> float:
+        return time.perf_counter() - self._t0 if hasattr(self, "_t0") else 0.0
+
+    def noise_std(self) -> float:
+        tc = self.tc
+        frac = min(1.0, self.env_step / tc.noise_decay_steps)
+        return tc.noise_std + frac * (tc.noise_std_final - tc.noise_std)
+
+    def _actions(self, obs: np.ndarray) -> np.ndarray:
+        tc = self.tc
+        if self.env_step < tc.warmup_steps:
+            a = self.np_rng.uniform(-1.0, 1.0, (tc.n_envs, self.spec.n_agents, 2))
+            return a * self.agent.learn_mask.cpu().numpy()[None, :, None]
+        return self.agent.act(obs, self.noise_std(), self.noise_gen).cpu().numpy().astype(np.float64)
+
+    def run(self, progress: bool = True) -> TrainResult:
+        tc = self.tc
+        from torch.utils.tensorboard import SummaryWriter
+        writer = SummaryWriter(str(self.out / "tb"), purge_step=self.env_step or None)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(total=tc.steps, initial=self.env_step, unit="step", dynamic_ncols=True, mininterval=1.0)
+        win = _Window()
+        self._t0 = time.perf_counter()
+        start_step, start_updates = self.env_step, self.agent.updates
+        last_t, last_step, last_updates = self._t0, self.env_step, self.agent.updates
+        obs = self.env.reset()
+        self.returns[:] = 0.0
+        interrupted = False
+        try:
+            while self.env_step < tc.steps:
+                actions = self._actions(obs)
+                next_obs, rew, done, info = self.env.step(actions)
+                store_next = next_obs
+                if done.any():
+                    store_next = next_obs.copy()
+                    store_next[info["final_env_ids"]] = info["final_obs"]
+                self.buffer.add(obs, actions, rew, store_next)
+                obs = next_obs
+                self.env_step += 1
+                self._record(win, rew, done, info)
+                if (self.env_step >= tc.warmup_steps and len(self.buffer) >= tc.batch_size
+                        and self.env_step % tc.update_every == 0):
+                    for _ in range(tc.updates_per_round):
+                        losses = self.agent.update(self.buffer.sample(tc.batch_size, self.sample_gen))
+                        for k, v in losses.items():
+                            win.losses[k] = win.losses.get(k, 0.0) + v
+                        win.n_updates += 1
+                if bar is not None:
+                    bar.update(1)
+                if self.env_step % tc.log_every == 0 or self.env_step == tc.steps:
+                    now = time.perf_counter()
+                    dt = max(now - last_t, 1e-9)
+                    row = self._log_row(win, (self.env_step - last_step) * tc.n_envs / dt,
+                                        (self.agent.updates - last_updates) / dt, writer)
+                    last_t, last_step, last_updates = now, self.env_step, self.agent.updates
+                    if bar is not None:
+                        bar.set_postfix_str(_postfix(row), refresh=False)
+                    win.reset()
+                if self.env_step % tc.checkpoint_every == 0 and self.env_step < tc.steps:
+                    self.save_checkpoint()
+        except KeyboardInterrupt:
+            interrupted = True
+            log.warning("interrupted at env step %d: saving a checkpoint (continue with --resume)", self.env_step)
+        finally:
+            if bar is not None:
+                bar.close()
+        self.save_checkpoint()
+        writer.close()
+        session = self._session_time()
+        result = TrainResult(self.out, self.env_step, (self.env_step - start_step) * tc.n_envs,
+                             self.agent.updates - start_updates, session, interrupted)
+        summary = {**result.to_dict(), "total_env_steps": self.env_step, "total_frames": self.env_step * tc.n_envs,
+                   "total_updates": self.agent.updates, "total_train_time_s": round(self.elapsed + session, 3),
+                   "torch_threads": torch.get_num_threads(), "device": tc.device, "finished_utc": _utc_now()}
+        (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        return result
+
+    def _record(self, win: _Window, rew: np.ndarray, done: np.ndarray, info: dict) -> None:
+        win.n += 1
+        for r, idx in self.role_idx.items():
+            win.reward[r] += float(rew[:, idx].mean())
+        nt = self.spec.team.n_team
+        d = self.env.world.last_distances[:, self.pursuers][:, :, nt:].reshape(self.tc.n_envs, -1)
+        win.dist += (d.min(1).mean(), d.mean(), d.max(1).mean())
+        win.captures += float(info["contacts"][:, :nt, nt:].sum()) / self.tc.n_envs
+        self.returns += rew
+        if done.any():
+            ids = info["final_env_ids"]
+            for r, idx in self.role_idx.items():
+                win.returns[r] += list(self.returns[ids][:, idx].mean(1))
+            self.returns[ids] = 0.0
+
+    def _log_row(self, win: _Window, fps: float, ups: float, writer: Any) -> dict[str, Any]:
+        n = max(win.n, 1)
+        row: dict[str, Any] = {"step": self.env_step, "frames": self.env_step * self.tc.n_envs,
+                               "updates": self.agent.updates, "time_s": round(self.elapsed + self._session_time(), 2),
+                               "fps": round(fps, 1), "updates_per_s": round(ups, 2),
+                               "noise_std": round(self.noise_std(), 4)}
+        for r in ROLES:
+            row[f"reward_{r}"] = win.reward[r] / n if r in self.role_idx else ""
+            row[f"return_{r}"] = float(np.mean(win.returns[r])) if win.returns[r] else ""
+        row["min_dist"], row["avg_dist"], row["max_dist"] = (win.dist / n).tolist()
+        row["captures_per_step"] = win.captures / n
+        row["episodes"] = len(win.returns[next(iter(self.role_idx))])
+        for k in ("critic_loss", "actor_loss", "q_mean"):
+            row[k] = win.losses[k] / win.n_updates if win.n_updates else ""
+        with (self.out / "metrics.csv").open("a", newline="") as fh:
+            csv.writer(fh).writerow([_fmt(row[c]) for c in CSV_COLUMNS])
+        for k, v in row.items():
+            if k != "step" and v != "":
+                writer.add_scalar(k, float(v), self.env_step)
+        return row
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+def _postfix(row: dict[str, Any]) -> str:
+    parts = [f"{r[0]}R={row[f'reward_{r}']:.2f}" for r in ROLES if row[f"reward_{r}"] != ""]
+    parts.append(f"dmin={row['min_dist']:.2f} davg={row['avg_dist']:.2f}")
+    parts.append(f"{row['fps']:.0f}fps {row['updates_per_s']:.1f}up/s")
+    return " ".join(parts)
+
+
+def _utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def resolve_config(config: str | Path | None, out: str | Path, resume: bool, **overrides: Any) -> ExperimentConfig:
+    """The experiment config of a run: the TOML given (or, with ``resume``, the run's own ``config.toml``),
+    with non-None ``overrides`` of ``TrainConfig`` fields applied (validated)."""
+    if resume:
+        path = Path(out) / "config.toml"
+        if not path.is_file():
+            raise RunError(f"nothing to resume in {out}: {path} does not exist")
+        if config is not None:
+            log.info("--resume: using %s, not %s", path, config)
+        cfg = ExperimentConfig.from_toml(path)
+    else:
+        if config is None:
+            raise RunError("give --config CONFIG.toml (or --resume an existing run)")
+        cfg = ExperimentConfig.from_toml(config)
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    if changes:
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **changes))
+    return cfg
+
+
+def train(cfg: ExperimentConfig, out: str | Path, resume: bool = False, progress: bool = True) -> TrainResult:
+    """Train (or continue) the run in ``out``; Ctrl-C saves a checkpoint and returns with ``interrupted``."""
+    trainer = Trainer(cfg, out, resume=resume)
+    if resume:  # a resumed run records the (possibly extended) config it continues with
+        (trainer.out / "config.toml").write_text(dump_toml(cfg.to_dict()))
+    return trainer.run(progress=progress)
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+# registered by training.cli as `swarm-train train`
+
+
+def add_train_parser(sub: Any) -> None:
+    p = sub.add_parser(
+        "train", help="train Role-based MADDPG (all roles at once, evaders included)",
+        description="Trains every agent of a config with Role-based MADDPG and writes a run folder: config.toml, "
+                    "run.json (git revision), metrics.csv, tb/ (TensorBoard), checkpoints/ and actors.pt. "
+                    "Ctrl-C saves a checkpoint; --resume continues it.")
+    p.add_argument("--config", metavar="PATH", help="experiment TOML (not needed with --resume)")
+    p.add_argument("--out", required=True, metavar="RUN", help="run folder, e.g. runs/role_based")
+    p.add_argument("--steps", type=int, metavar="N", help="env steps per env to reach (overrides train.steps)")
+    p.add_argument("--seed", type=int, metavar="S", help="training seed (overrides train.seed)")
+    p.add_argument("--device", metavar="D", help="torch device: cpu, cuda or cuda:K (overrides train.device)")
+    p.add_argument("--n-envs", type=int, metavar="K", help="envs stepped together (overrides train.n_envs)")
+    p.add_argument("--threads", type=int, metavar="T", help="torch CPU threads (overrides train.threads)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+
+
+def cmd_train(args: Any) -> int:
+    from training.cli import UsageError
+    try:
+        cfg = resolve_config(args.config, args.out, args.resume, steps=args.steps, seed=args.seed,
+                             device=args.device, n_envs=args.n_envs, threads=args.threads)
+        if args.resume and args.seed is not None:
+            raise RunError("--seed cannot change on --resume: the run keeps its own seed")
+        out = Path(args.out)
+        handler = logging.FileHandler(out / "train.log") if out.is_dir() else None
+        if handler is None:
+            out.mkdir(parents=True, exist_ok=True)
+            handler = logging.FileHandler(out / "train.log")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        logging.getLogger().addHandler(handler)
+        logging.getLogger().setLevel(min(logging.getLogger().level or logging.INFO, logging.INFO))
+        result = train(cfg, out, resume=args.resume, progress=not args.no_progress)
+    except RunError as exc:
+        raise UsageError(str(exc)) from None
+    d = result.to_dict()
+    state = "interrupted" if result.interrupted else "finished"
+    print(f"{cfg.name}: {state} at env step {result.env_steps}: {d['frames']} frames and {d['updates']} updates "
+          f"in {d['train_time_s']:.1f} s ({d['fps']:.0f} frames/s, {d['updates_per_s']:.1f} updates/s)")
+    print(f"wrote {out / 'actors.pt'}" + (f"; continue with: swarm-train train --out {out} --resume"
+                                          if result.interrupted else ""))
+    return 130 if result.interrupted else 0
