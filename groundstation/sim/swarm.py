@@ -32,6 +32,27 @@ DEFAULT_BASE_PORT = 19850
 """cflib's UDP driver scans 19850-19859 (CrazySim's convention)."""
 
 
+def free_base_port(n: int, low: int = 20000, high: int = 40000, seed: int | None = None) -> int:
+    """A base port with ``n`` consecutive free UDP ports on 127.0.0.1, drawn at random in [low, high), so
+    that parallel runs (tests, several demos) do not collide."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        base = int(rng.integers(low, high - n))
+        probes = []
+        try:
+            for i in range(n):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                probes.append(sock)
+                sock.bind(("127.0.0.1", base + i))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sock in probes:
+                sock.close()
+    raise SimError(f"no {n} consecutive free UDP ports in [{low}, {high}): free some or widen the range")
+
+
 class SimError(RuntimeError):
     """The simulator cannot start or was used wrongly; the message says how to fix it."""
 
