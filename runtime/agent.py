@@ -1,0 +1,422 @@
+"""The per-drone loop: state in, neighbours' messages in, observation, actor, velocity command out.
+
+One ``Agent`` per drone, each on its own thread (``Agent.start``) or driven tick by tick by its owner
+(``Agent.tick``). Where the state comes from and where the command goes are two small callables, so the same
+loop runs against the simulated world (``runtime.swarm``) and against real drones through the ground
+station:
+
+``StateSource``  ``source(index, perception) -> bool``
+    Write drone ``index``'s current state into the preallocated ``Perception`` (own position and velocity
+    with their timestamp on the swarm clock, the obstacle map, the agents its own sensors see this instant)
+    and return True; return False when there is no fresh state (the drone then gets the safe action).
+``CommandSink``  ``sink(index, velocity)``
+    Send the velocity setpoint ``[vx, vy]`` [m/s, world frame] to drone ``index``. The vector is already
+    limited to the role's ``max_speed``; zero is the safe action (hold position). The array is reused by
+    the next tick: copy it if it must outlive the call. A ground station passes it through its geofence.
+``FaultHandler`` ``on_fault(index, message)`` (optional)
+    Told about every fault (an exception in the loop, a non-finite observation or action, no fresh state).
+
+Sensing model: a pursuer-team drone senses evaders itself (``Perception.sensed``; within the spec's
+sensing range, or all of them with full observability) and hears its teammates' states and sightings over
+the radio (``runtime.comms``); an evader senses the pursuer team and hears the other evaders. The
+observation is built by ``runtime.observation.encode_observations`` - the function training uses - with
+``B = 1``, ``observers = [index]`` on the state this drone believes.
+
+Timing: ticks at ``rate_hz``, offset by ``phase_s`` (a swarm staggers its agents across the period so
+that they do not contend for the CPU at the same instant). ``lead_s`` before each tick the agent reads its
+state, drains its radio, builds the observation and runs the actor once as a warm-up (a model idle for a
+control period costs several times more: its weights and onnxruntime's code have left the caches); at the
+tick it runs the actor on that observation and publishes the command, then broadcasts its own state.
+``tick_to_action`` is measured from the scheduled tick to the published command, ``state_to_action`` from
+the state read to the published command (it includes the observation build).
+
+A fault never stops the loop or other agents: the drone gets the safe action, the fault is counted in
+``AgentStats`` and reported to ``on_fault``; the next tick tries again. The steady-state loop reuses
+preallocated buffers (perception, belief arrays, observation, action, wire buffer); the temporaries numpy
+makes inside the shared encoder are freed at once (no growth, checked by a test).
+"""
+from __future__ import annotations
+
+import ctypes
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from runtime.comms import Neighbours, Radio
+from runtime.observation import SIGHTING, encode_observations
+from runtime.spec import Role, SpecError, SwarmSpec
+
+log = logging.getLogger(__name__)
+
+Clock = Callable[[], float]
+
+
+@dataclass
+class Perception:
+    """What one drone perceives at one instant; preallocated once and overwritten by its ``StateSource``."""
+
+    pos: np.ndarray
+    """[2] own position [m, world frame]."""
+    vel: np.ndarray
+    """[2] own velocity [m/s]."""
+    obstacle_pos: np.ndarray
+    """[K, 2] obstacle centres [m] (K = spec.arena.n_obstacles)."""
+    obstacle_radius: np.ndarray
+    """[K] obstacle radii [m]."""
+    sensed: np.ndarray
+    """[N] bool: agents this drone's own sensors see now (a pursuer-team drone: evaders; an evader: the
+    pursuer team). Their states go in ``others_pos`` / ``others_vel``; other rows are ignored."""
+    others_pos: np.ndarray
+    """[N, 2] positions of the sensed agents [m]."""
+    others_vel: np.ndarray
+    """[N, 2] velocities of the sensed agents [m/s]."""
+    time_s: float = 0.0
+    """Timestamp of this state on the swarm clock [s] (the clock the agents' ``clock`` reads)."""
+    episode: int = 0
+    """Mission / episode counter: when it changes the agent forgets its neighbours and sightings."""
+
+    @classmethod
+    def new(cls, spec: SwarmSpec) -> "Perception":
+        n, k = spec.n_agents, spec.arena.n_obstacles
+        return cls(np.zeros(2), np.zeros(2), np.zeros((k, 2)), np.zeros(k), np.zeros(n, dtype=bool),
+                   np.zeros((n, 2)), np.zeros((n, 2)))
+
+
+StateSource = Callable[[int, Perception], bool]
+CommandSink = Callable[[int, np.ndarray], None]
+FaultHandler = Callable[[int, str], None]
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    rate_hz: float | None = None
+    """Control rate [Hz]; None: 1 / spec.timing.control_period."""
+    phase_s: float = 0.0
+    """Offset of this agent's ticks after the swarm's start [s]."""
+    lead_s: float = 0.002
+    """How long before its tick the agent prepares the observation and warms the actor [s]."""
+    warm: bool = True
+    """Run the actor once during the preparation (warm-up) so that the call at the tick is cache-hot."""
+    deadline_s: float | None = None
+    """A command published later than this after its tick is a deadline miss [s]; None: one period."""
+    stale_after_s: float | None = None
+    """Partial observability: a teammate is visible while heard within this [s]; None: 5 control periods.
+    With full observability the last state heard is always used (ranges do not limit what is seen)."""
+    record: int = 1 << 16
+    """Ticks whose timings are kept (a ring); older ones are overwritten."""
+
+    def period(self, spec: SwarmSpec) -> float:
+        if self.rate_hz is None:
+            return spec.timing.control_period
+        if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
+            raise SpecError(f"agent.rate_hz: must be a finite number > 0, got {self.rate_hz!r}")
+        return 1.0 / self.rate_hz
+
+
+class AgentStats:
+    """Counters and the timing ring of one agent."""
+
+    def __init__(self, record: int) -> None:
+        self.ticks = 0
+        """Ticks whose command was published (actions, safe ones included)."""
+        self.actions = 0
+        """Ticks whose command came from the actor."""
+        self.faults = 0
+        self.last_fault = ""
+        self.no_state = 0
+        """Ticks with no fresh state from the source (safe action, counted as faults too)."""
+        self.waiting = 0
+        """Ticks spent waiting to hear every teammate once (full observability; safe action)."""
+        self.deadline_misses = 0
+        self.skipped = 0
+        """Ticks not run because the loop fell more than a period behind (counted as misses too)."""
+        self.tick_to_action = np.zeros(record)
+        self.state_to_action = np.zeros(record)
+
+    def timings(self) -> tuple[np.ndarray, np.ndarray]:
+        """(tick_to_action, state_to_action) [s] of the recorded ticks."""
+        n = min(self.ticks, self.tick_to_action.size)
+        return self.tick_to_action[:n].copy(), self.state_to_action[:n].copy()
+
+    def as_dict(self) -> dict:
+        return {k: getattr(self, k) for k in ("ticks", "actions", "faults", "last_fault", "no_state", "waiting",
+                                              "deadline_misses", "skipped")}
+
+
+_PR_SET_TIMERSLACK = 29
+
+
+def precise_sleep_for_this_thread() -> bool:
+    """Ask Linux for 1 us timer slack on the calling thread (the default 50 us delays every wake-up)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(_PR_SET_TIMERSLACK, 1000, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+class Agent:
+    """One drone's runtime.
+
+    >>> agent = Agent(i, spec, policy, source, sink, radio)        # doctest: +SKIP
+    >>> agent.start(t0=clock()); ...; agent.stop()                  # its own thread at rate_hz
+    >>> agent.tick()                                                # or one synchronous tick
+    """
+
+    def __init__(self, index: int, spec: SwarmSpec, policy, source: StateSource, sink: CommandSink,
+                 radio: Radio | None = None, config: AgentConfig | None = None, clock: Clock = time.monotonic,
+                 on_fault: FaultHandler | None = None) -> None:
+        if not 0 <= index < spec.n_agents:
+            raise SpecError(f"agent index {index} is outside the spec's {spec.n_agents} agents")
+        self.index = index
+        self.spec = spec
+        self.role = spec.roles[index]
+        self.agent_id = spec.team.agent_ids()[index]
+        if getattr(policy, "role", self.role) != self.role:
+            raise SpecError(f"agent {self.agent_id} flies as a {self.role.label}, its policy is a "
+                            f"{Role(policy.role).label} actor: check the models' order")
+        self.policy = policy
+        self.source = source
+        self.sink = sink
+        self.radio = radio
+        self.config = config or AgentConfig()
+        self.clock = clock
+        self.on_fault = on_fault
+        self.period = self.config.period(spec)
+        self.deadline = self.config.deadline_s if self.config.deadline_s is not None else self.period
+        self.stale_after = (self.config.stale_after_s if self.config.stale_after_s is not None
+                            else 5 * spec.timing.control_period)
+        self.stats = AgentStats(self.config.record)
+        n, nt, e = spec.n_agents, spec.team.n_team, spec.team.n_evaders
+        self.nt = nt
+        self.in_team = index < nt
+        self.full = spec.sensing.observability == "full"
+        mates = np.arange(nt) if self.in_team else np.arange(nt, n)
+        self.mates = mates[mates != index]
+        self.others = np.arange(nt, n) if self.in_team else np.arange(nt)
+        # preallocated state
+        self.perception = Perception.new(spec)
+        self.neighbours = Neighbours(n)
+        self._pos = np.zeros((1, n, 2))
+        self._vel = np.zeros((1, n, 2))
+        self._visible = np.zeros((1, n, n), dtype=bool)
+        self._knowledge = np.zeros((1, nt, e, SIGHTING))
+        self._knowledge[..., 4] = -np.inf
+        self.sightings = self._knowledge[0, index] if self.in_team else None
+        """This drone's target table [n_evaders, 5] (x, y, vx, vy, t_seen); None for evaders."""
+        self._obst_pos = self.perception.obstacle_pos[None]
+        self._obst_rad = self.perception.obstacle_radius[None]
+        self._observers = np.array([index])
+        self._obs_full = np.zeros((1, 1, spec.max_obs_dim))
+        self.obs = self._obs_full[0, 0, :spec.obs_dim(self.role)]
+        """The latest observation this agent built ([obs_dim] view into a preallocated buffer)."""
+        self.action = np.zeros(2, dtype=np.float32)
+        self.velocity = np.zeros(2)
+        self._safe = np.zeros(2)
+        self.max_speed = spec.role(self.role).max_speed
+        self._epoch = None
+        self._ready = self._have_state = False
+        self._t_state_read = 0.0
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    # ------------------------------------------------------------------------------------ the steps
+    def _fault(self, what: str) -> None:
+        st = self.stats
+        st.faults += 1
+        st.last_fault = what
+        if st.faults == 1 or st.faults % 1000 == 0:
+            log.warning("%s: %s; safe action published (faults so far: %d)", self.agent_id, what, st.faults)
+        if self.on_fault is not None:
+            try:
+                self.on_fault(self.index, what)
+            except Exception:  # a broken fault handler must not take the loop down either
+                log.exception("%s: fault handler failed", self.agent_id)
+
+    def prepare(self) -> bool:
+        """Read the state, drain the radio, update the sightings and build ``obs``. True when an action can
+        be computed from it."""
+        self._ready = self._have_state = False
+        p = self.perception
+        self._t_state_read = self.clock()
+        if not self.source(self.index, p):
+            self.stats.no_state += 1
+            self._fault("no fresh state from the state source")
+            return False
+        self._have_state = True
+        if p.episode != self._epoch:
+            self._new_epoch(p.episode)
+        i = self.index
+        nb = self.neighbours
+        if self.radio is not None:
+            self.radio.poll(self._t_state_read, p.pos, nb, self.sightings)
+        pos, vel, vis = self._pos[0], self._vel[0], self._visible[0, i]
+        pos[i] = p.pos
+        vel[i] = p.vel
+        m = self.mates
+        pos[m] = nb.pos[m]
+        vel[m] = nb.vel[m]
+        o = self.others
+        sensed = p.sensed[o]
+        pos[o] = p.others_pos[o]
+        vel[o] = p.others_vel[o]
+        if self.full:
+            if m.size and not np.isfinite(nb.t_state[m]).all():
+                self.stats.waiting += 1
+                return False
+        else:
+            vis[m] = nb.t_recv[m] >= self._t_state_read - self.stale_after
+            vis[o] = sensed
+        if self.in_team and sensed.any():
+            kn = self.sightings
+            for e in np.flatnonzero(sensed).tolist():  # own sensing overrides relayed sightings
+                row = kn[e]
+                row[0:2] = p.others_pos[self.nt + e]
+                row[2:4] = p.others_vel[self.nt + e]
+                row[4] = p.time_s
+        encode_observations(self.spec, self._pos, self._vel, self._obst_pos, self._obst_rad, self._knowledge,
+                            p.time_s, observers=self._observers, visible=self._visible, out=self._obs_full)
+        if self.config.warm:
+            self.policy.act(self.obs, out=self.action)
+        self._ready = True
+        return True
+
+    def actuate(self, tick: float | None = None) -> None:
+        """Run the actor on ``obs`` (or keep the safe action when ``prepare`` failed), publish the command,
+        record the timing against ``tick`` (default: now), then broadcast this drone's state."""
+        st = self.stats
+        v = self.velocity
+        if self._ready:
+            faults = self.policy.faults
+            self.policy.act(self.obs, out=self.action)
+            if self.policy.faults != faults:
+                self._fault(f"policy: {self.policy.last_fault}")
+            a = self.action
+            v[0] = a[0] * self.max_speed
+            v[1] = a[1] * self.max_speed
+            sp = math.hypot(v[0], v[1])
+            if sp > self.max_speed:
+                v *= self.max_speed / sp
+            st.actions += 1
+        else:
+            v[:] = 0.0
+        self.sink(self.index, v)
+        done = self.clock()
+        k = st.ticks % st.tick_to_action.size
+        lat = done - (done if tick is None else tick)
+        st.tick_to_action[k] = lat
+        st.state_to_action[k] = done - self._t_state_read
+        if lat > self.deadline:
+            st.deadline_misses += 1
+        st.ticks += 1
+        if self._have_state and self.radio is not None:
+            p = self.perception
+            self.radio.broadcast(done, p.time_s, p.pos, p.vel, self.sightings)
+
+    def tick(self) -> np.ndarray:
+        """One synchronous tick (prepare, act, publish, broadcast); returns the published velocity."""
+        t = self.clock()
+        self._guarded(self.prepare)
+        self._guarded_actuate(t)
+        return self.velocity
+
+    def _new_epoch(self, epoch: int) -> None:
+        self._epoch = epoch
+        self.neighbours.reset()
+        self._knowledge[..., :4] = 0.0
+        self._knowledge[..., 4] = -np.inf
+        if self.radio is not None:
+            self.radio.clear(epoch)
+
+    def _guarded(self, step: Callable[[], object]) -> None:
+        try:
+            step()
+        except Exception as exc:  # one drone's fault must never stop its loop or the swarm
+            self._ready = False
+            self._fault(f"{type(exc).__name__}: {exc}")
+
+    def _guarded_actuate(self, tick: float) -> None:
+        try:
+            self.actuate(tick)
+        except Exception as exc:
+            self._ready = False
+            self._fault(f"{type(exc).__name__}: {exc}")
+            try:
+                self.velocity[:] = 0.0
+                self.sink(self.index, self._safe)
+            except Exception as exc2:
+                self._fault(f"command sink failed with the safe action: {type(exc2).__name__}: {exc2}")
+
+    # ------------------------------------------------------------------------------------ the thread
+    def _sleep_until(self, t: float) -> bool:
+        """Sleep until clock() >= t; True when stop was requested."""
+        while True:
+            rest = t - self.clock()
+            if rest <= 0:
+                return self._stop.is_set()
+            if rest > 0.05:
+                if self._stop.wait(0.05):
+                    return True
+            else:
+                time.sleep(rest)
+
+    def _loop(self, t0: float) -> None:
+        precise_sleep_for_this_thread()
+        period, lead = self.period, self.config.lead_s
+        tick = t0 + self.config.phase_s
+        st = self.stats
+        while True:
+            if self._sleep_until(tick - lead):
+                break
+            self._guarded(self.prepare)
+            if self._sleep_until(tick):
+                break
+            self._guarded_actuate(tick)
+            tick += period
+            behind = self.clock() - tick
+            if behind > 0:  # overran a whole period: skip the ticks that are already past
+                n = int(behind // period) + 1
+                st.skipped += n
+                st.deadline_misses += n
+                tick += n * period
+
+    def start(self, t0: float | None = None) -> None:
+        """Start the loop on its own thread; ticks at ``t0 + phase_s + k / rate_hz`` (t0 default: now)."""
+        if self._thread is not None:
+            raise RuntimeError(f"{self.agent_id}: already started")
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._loop, args=(self.clock() if t0 is None else t0,),
+                                        name=f"agent-{self.agent_id}", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> bool:
+        """Stop the loop and publish the safe action; True when the thread ended within ``timeout``."""
+        self._stop.set()
+        ok = True
+        if self._thread is not None:
+            self._thread.join(timeout)
+            ok = not self._thread.is_alive()
+            self._thread = None
+        try:
+            self.sink(self.index, self._safe)
+        except Exception as exc:
+            self._fault(f"command sink failed with the safe action at stop: {type(exc).__name__}: {exc}")
+        return ok
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+
+def staggered(n: int, period: float, spread: float = 1.0) -> list[float]:
+    """Phases that spread ``n`` agents evenly over ``spread`` of a period."""
+    return [spread * period * i / n for i in range(n)]
+
+
+__all__ = ["Agent", "AgentConfig", "AgentStats", "Perception", "StateSource", "CommandSink", "FaultHandler",
+           "staggered", "precise_sleep_for_this_thread"]

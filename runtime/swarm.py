@@ -1,0 +1,439 @@
+"""The runtime against the simulated world: one env of ``runtime.world`` in real time, one agent per drone.
+
+The world runs in its own process and publishes its state on a ``WorldBoard`` (a seqlock-protected block of
+shared memory: time, episode, positions, velocities, obstacles, and one command row per drone), stepping
+every ``spec.timing.control_period`` with the latest commands and scoring the run with
+``runtime.metrics``. The agents read their state from the board (``WorldSource``: own state, the obstacle
+map, and what their own sensors see) and write their commands to it (``WorldSink``) - the same two
+callables a ground station plugs its links into. Agents run as threads of this process with an
+``InProcessBus`` (``processes=False``), or each in its own process talking over ``UdpTransport`` on
+loopback (``processes=True``), as on separate onboard computers.
+
+Keeping the world out of the agents' process keeps its steps and the metrics' raster work from holding the
+agents' interpreter lock at their ticks.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+import os
+import queue
+import sys
+import time
+from dataclasses import dataclass, field
+from multiprocessing import shared_memory
+from pathlib import Path
+
+import numpy as np
+
+from runtime.agent import Agent, AgentConfig, Perception, staggered
+from runtime.comms import CommConfig, CommStats, InProcessBus, Radio, UdpTransport, free_udp_ports
+from runtime.spec import SpecError, SwarmSpec
+
+log = logging.getLogger(__name__)
+
+_CTX = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
+
+
+# --------------------------------------------------------------------------------------------------
+# the board: world snapshot and commands
+
+
+class WorldBoard:
+    """World state and commands in one float64 block (plain memory, or shared memory by ``name``).
+
+    Layout: ``[version, time_s, episode, stop, pos (2N), vel (2N), obstacle_pos (2K), obstacle_radius (K),
+    cmd (2N)]``. Writers of the snapshot bump ``version`` to odd, write, bump it to even; readers retry while
+    it is odd or changed (a seqlock), so a reader never sees half a step."""
+
+    def __init__(self, spec: SwarmSpec, shared: bool = False, name: str | None = None) -> None:
+        n, k = spec.n_agents, spec.arena.n_obstacles
+        self.n, self.k = n, k
+        size = 4 + 4 * n + 3 * k + 2 * n
+        self.shm = None
+        if shared or name is not None:
+            self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=8 * size)
+            if name is not None and _CTX.get_start_method() != "fork":
+                _untrack(self.shm)  # attached from a fresh interpreter: the creator unlinks it
+            self.buf = np.ndarray((size,), dtype=np.float64, buffer=self.shm.buf)
+            if name is None:
+                self.buf[:] = 0.0
+        else:
+            self.buf = np.zeros(size)
+        b = self.buf
+        o = 4
+        self.pos = b[o:o + 2 * n].reshape(n, 2)
+        o += 2 * n
+        self.vel = b[o:o + 2 * n].reshape(n, 2)
+        o += 2 * n
+        self.obstacle_pos = b[o:o + 2 * k].reshape(k, 2)
+        o += 2 * k
+        self.obstacle_radius = b[o:o + k]
+        o += k
+        self.cmd = b[o:o + 2 * n].reshape(n, 2)
+        """Normalised actions [-1, 1] per drone (velocity / max_speed), written by the sinks."""
+
+    @property
+    def name(self) -> str | None:
+        return None if self.shm is None else self.shm.name
+
+    def publish(self, pos: np.ndarray, vel: np.ndarray, obstacle_pos: np.ndarray, obstacle_radius: np.ndarray,
+                time_s: float, episode: int) -> None:
+        b = self.buf
+        b[0] += 1.0
+        self.pos[:] = pos
+        self.vel[:] = vel
+        self.obstacle_pos[:] = obstacle_pos
+        self.obstacle_radius[:] = obstacle_radius
+        b[1] = time_s
+        b[2] = episode
+        b[0] += 1.0
+
+    @property
+    def version(self) -> float:
+        return float(self.buf[0])
+
+    @property
+    def stopped(self) -> bool:
+        return bool(self.buf[3])
+
+    def request_stop(self) -> None:
+        self.buf[3] = 1.0
+
+    def close(self, unlink: bool = False) -> None:
+        if self.shm is not None:
+            self.buf = self.pos = self.vel = self.obstacle_pos = self.obstacle_radius = self.cmd = None
+            self.shm.close()
+            if unlink:
+                self.shm.unlink()
+            self.shm = None
+
+
+def _untrack(shm: shared_memory.SharedMemory) -> None:
+    """An attaching process must not let its resource tracker unlink (or warn about) the creator's block."""
+    try:
+        from multiprocessing import resource_tracker
+        resource_tracker.unregister(shm._name, "shared_memory")  # noqa: SLF001 (no public API for this)
+    except (ImportError, AttributeError, KeyError):
+        pass
+
+
+class WorldSource:
+    """``StateSource`` over a ``WorldBoard``: own state, obstacles, and the other team's agents this drone
+    senses (within ``sensing.sensing_range``; all of them with full observability)."""
+
+    def __init__(self, board: WorldBoard, spec: SwarmSpec) -> None:
+        self.board = board
+        nt, n = spec.team.n_team, spec.n_agents
+        self.other_team = np.zeros((n, n), dtype=bool)
+        self.other_team[:nt, nt:] = True
+        self.other_team[nt:, :nt] = True
+        self.full = spec.sensing.observability == "full"
+        self.r2 = spec.sensing.sensing_range ** 2
+        self._d2 = [np.zeros(n) for _ in range(n)]
+
+    def __call__(self, index: int, p: Perception) -> bool:
+        b = self.board
+        buf = b.buf
+        for _ in range(100):
+            v1 = buf[0]
+            if v1 % 2.0 == 1.0 or v1 == 0.0:  # being written, or nothing published yet
+                time.sleep(0)
+                continue
+            p.others_pos[:] = b.pos
+            p.others_vel[:] = b.vel
+            p.obstacle_pos[:] = b.obstacle_pos
+            p.obstacle_radius[:] = b.obstacle_radius
+            t, ep = buf[1], buf[2]
+            if buf[0] == v1:
+                break
+        else:
+            return False
+        p.time_s = float(t)
+        p.episode = int(ep)
+        p.pos[:] = p.others_pos[index]
+        p.vel[:] = p.others_vel[index]
+        if self.full:
+            p.sensed[:] = self.other_team[index]
+        else:
+            d2 = self._d2[index]
+            dx = p.others_pos[:, 0] - p.pos[0]
+            dy = p.others_pos[:, 1] - p.pos[1]
+            np.multiply(dx, dx, out=d2)
+            d2 += dy * dy
+            np.less_equal(d2, self.r2, out=p.sensed)
+            p.sensed &= self.other_team[index]
+        return True
+
+
+class WorldSink:
+    """``CommandSink`` onto a ``WorldBoard``: velocity [m/s] -> the world's normalised action."""
+
+    def __init__(self, board: WorldBoard, spec: SwarmSpec) -> None:
+        self.board = board
+        self.inv_speed = [1.0 / s for s in spec.per_agent("max_speed")]
+
+    def __call__(self, index: int, velocity: np.ndarray) -> None:
+        row = self.board.cmd[index]
+        s = self.inv_speed[index]
+        row[0] = velocity[0] * s
+        row[1] = velocity[1] * s
+
+
+# --------------------------------------------------------------------------------------------------
+# the world process
+
+
+def _world_main(board_name: str, spec_dict: dict, seed: int, t0: float, t_end: float, out: mp.Queue) -> None:
+    from runtime.metrics import MetricsAccumulator, summarize
+    from runtime.world import World
+    try:
+        spec = SwarmSpec.from_dict(spec_dict)
+        board = WorldBoard(spec, name=board_name)
+        world = World(spec, 1, seed)
+        s = world.reset()
+        metrics = MetricsAccumulator(spec, 1)
+        metrics.begin_episodes(np.array([0]), s.obstacle_pos, s.obstacle_radius)
+        episode = 0
+        board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], time.monotonic(), episode)
+        dt = spec.timing.control_period
+        steps = 0
+        late = []
+        act = np.zeros((1, spec.n_agents, 2))
+        nxt = t0 + dt
+        while nxt <= t_end and not board.stopped:
+            rest = nxt - time.monotonic()
+            if rest > 0:
+                time.sleep(rest)
+            late.append(time.monotonic() - nxt)
+            act[0] = board.cmd
+            contacts = world.step(act)
+            metrics.update(s.pos, contacts, world.obstacle_contacts(), world.last_distances)
+            steps += 1
+            if s.step[0] >= spec.timing.episode_steps:
+                metrics.end_episodes(np.array([0]))
+                world.reset()
+                metrics.begin_episodes(np.array([0]), s.obstacle_pos, s.obstacle_radius)
+                episode += 1
+            board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], time.monotonic(), episode)
+            nxt += dt
+        partial = int(s.step[0])
+        if partial:
+            metrics.end_episodes(np.array([0]))
+        res = summarize(metrics.records)
+        res.update(steps=steps, partial_last_episode_steps=partial,
+                   world_step_late_p99_ms=float(np.percentile(late, 99) * 1e3) if late else 0.0,
+                   nonfinite_actions=world.nonfinite_actions)
+        board.close()
+        out.put(("world", res))
+    except Exception as exc:  # reported to the parent, which prints it
+        out.put(("world-error", f"{type(exc).__name__}: {exc}"))
+
+
+# --------------------------------------------------------------------------------------------------
+# agents
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    duration_s: float = 30.0
+    rate_hz: float | None = None
+    """Agents' control rate [Hz]; None: 1 / spec.timing.control_period (the world always steps at that)."""
+    comms: CommConfig = field(default_factory=CommConfig)
+    processes: bool = False
+    seed: int = 0
+    stagger: bool = True
+    """Spread the agents' ticks evenly over the period."""
+    lead_s: float | None = None
+    """Preparation lead before each tick [s]; None: min(2 ms, a quarter period)."""
+    warm: bool = True
+    switch_interval_s: float | None = 1e-4
+    """``sys.setswitchinterval`` for the agents' process (threads mode): how long a waking agent can wait
+    for another thread's interpreter lock; None keeps Python's 5 ms."""
+    startup_s: float = 0.5
+    """Delay between launching and the first tick, for processes to come up [s]."""
+
+    def __post_init__(self) -> None:
+        if not (self.duration_s > 0 and math.isfinite(self.duration_s)):
+            raise SpecError(f"run.duration_s: must be a finite number > 0, got {self.duration_s!r}")
+        if self.rate_hz is not None and not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
+            raise SpecError(f"run.rate_hz: must be a finite number > 0, got {self.rate_hz!r}")
+
+
+def _agent_config(spec: SwarmSpec, cfg: RunConfig, index: int) -> AgentConfig:
+    period = 1.0 / cfg.rate_hz if cfg.rate_hz else spec.timing.control_period
+    phase = staggered(spec.n_agents, period)[index] if cfg.stagger else 0.0
+    lead = cfg.lead_s if cfg.lead_s is not None else min(0.002, period / 4)
+    return AgentConfig(rate_hz=1.0 / period, phase_s=phase, lead_s=lead, warm=cfg.warm,
+                       record=max(16, int(cfg.duration_s / period) + 16))
+
+
+def _agent_result(agent: Agent, radio: Radio | None) -> dict:
+    tta, sta = agent.stats.timings()
+    return {"index": agent.index, "stats": agent.stats.as_dict(), "tick_to_action": tta, "state_to_action": sta,
+            "comms": radio.stats.as_dict() if radio is not None else {},
+            "policy_faults": agent.policy.faults}
+
+
+def _agent_main(index: int, models: str, board_name: str, ports: list[int], cfg: RunConfig, t0: float,
+                t_end: float, out: mp.Queue) -> None:
+    from runtime.policy import load_models
+    try:
+        manifest, (pol,) = load_models(models, agents=[index])
+        spec = manifest.spec
+        board = WorldBoard(spec, name=board_name)
+        radio = Radio(spec, index, UdpTransport(index, ports), cfg.comms)
+        agent = Agent(index, spec, pol, WorldSource(board, spec), WorldSink(board, spec), radio,
+                      _agent_config(spec, cfg, index))
+        agent.start(t0)
+        while time.monotonic() < t_end and not board.stopped:
+            time.sleep(min(0.05, max(0.0, t_end - time.monotonic())))
+        agent.stop()
+        radio.close()
+        res = _agent_result(agent, radio)
+        res["rss_kib"] = _rss_kib()
+        board.close()
+        out.put(("agent", res))
+    except Exception as exc:
+        out.put(("agent-error", f"agent {index}: {type(exc).__name__}: {exc}"))
+
+
+def _rss_kib() -> int:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return -1
+
+
+def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
+    """Run every agent of a models folder against one real-time world for ``cfg.duration_s``; returns the
+    metrics (``runtime.metrics.METRIC_KEYS``), the loop timings and the comms counters. Raises
+    ``runtime.policy.PolicyError`` for a bad models folder."""
+    from runtime.policy import load_models, read_manifest
+    if cfg.processes:
+        manifest = read_manifest(models)
+        policies = None
+    else:
+        manifest, policies = load_models(models)
+    spec = manifest.spec
+    n = spec.n_agents
+    board = WorldBoard(spec, shared=True)
+    results: "mp.Queue" = _CTX.Queue()
+    procs: list[mp.process.BaseProcess] = []
+    agents: list[Agent] = []
+    radios: list[Radio] = []
+    old_switch = sys.getswitchinterval()
+    try:
+        start = time.monotonic() + cfg.startup_s + (0.1 * n if cfg.processes else 0.0)
+        t_end = start + cfg.duration_s
+        world = _CTX.Process(target=_world_main, args=(board.name, spec.to_dict(), cfg.seed, start, t_end, results),
+                             name="swarm-world", daemon=True)
+        world.start()
+        procs.append(world)
+        if cfg.processes:
+            ports = free_udp_ports(n)
+            for i in range(n):
+                p = _CTX.Process(target=_agent_main, args=(i, str(models), board.name, ports, cfg, start, t_end,
+                                                           results), name=f"swarm-agent-{i}", daemon=True)
+                p.start()
+                procs.append(p)
+        else:
+            if cfg.switch_interval_s is not None:
+                sys.setswitchinterval(cfg.switch_interval_s)
+            bus = InProcessBus(n)
+            source, sink = WorldSource(board, spec), WorldSink(board, spec)
+            for i in range(n):
+                radio = Radio(spec, i, bus.endpoint(i), cfg.comms)
+                radios.append(radio)
+                agents.append(Agent(i, spec, policies[i], source, sink, radio, _agent_config(spec, cfg, i)))
+            for a in agents:
+                a.start(start)
+            rss = _rss_kib()
+            while time.monotonic() < t_end:
+                time.sleep(min(0.1, max(0.0, t_end - time.monotonic())))
+            for a in agents:
+                a.stop()
+            rss = max(rss, _rss_kib())
+        world_res, agent_res, errors = None, [], []
+        want = 1 + (n if cfg.processes else 0)
+        deadline = time.monotonic() + 30.0 + (5.0 * n if cfg.processes else 0.0)
+        while want and time.monotonic() < deadline:
+            try:
+                kind, val = results.get(timeout=0.5)
+            except queue.Empty:
+                if not any(p.is_alive() for p in procs):
+                    break
+                continue
+            want -= 1
+            if kind == "world":
+                world_res = val
+            elif kind == "agent":
+                agent_res.append(val)
+            else:
+                errors.append(val)
+        if errors or world_res is None:
+            raise RuntimeError("; ".join(errors) or "the world process ended without a result")
+        if not cfg.processes:
+            agent_res = [_agent_result(a, r) for a, r in zip(agents, radios)]
+            rss_kib = rss
+        else:
+            if len(agent_res) != n:
+                raise RuntimeError(f"only {len(agent_res)} of {n} agent processes reported")
+            rss_kib = sum(r["rss_kib"] for r in agent_res)
+        return _summarize(spec, cfg, world_res, agent_res, rss_kib)
+    finally:
+        sys.setswitchinterval(old_switch)
+        board.request_stop()
+        for a in agents:
+            if a.running:
+                a.stop()
+        for p in procs:
+            p.join(5.0)
+            if p.is_alive():
+                p.terminate()
+                p.join(1.0)
+        for r in radios:
+            r.close()
+        board.close(unlink=True)
+
+
+def _pct(x: np.ndarray, q: float) -> float:
+    return float(np.percentile(x, q) * 1e6) if x.size else float("nan")
+
+
+def _summarize(spec: SwarmSpec, cfg: RunConfig, world: dict, agents: list[dict], rss_kib: int) -> dict:
+    agents = sorted(agents, key=lambda r: r["index"])
+    tta = np.concatenate([r["tick_to_action"] for r in agents])
+    sta = np.concatenate([r["state_to_action"] for r in agents])
+    comms = CommStats()
+    for r in agents:
+        if r["comms"]:
+            comms.add(CommStats(**r["comms"]))
+    tot = lambda k: int(sum(r["stats"][k] for r in agents))  # noqa: E731
+    out = dict(world)
+    out.update({
+        "tick_to_action_p50_us": _pct(tta, 50), "tick_to_action_p99_us": _pct(tta, 99),
+        "tick_to_action_max_us": float(tta.max() * 1e6) if tta.size else float("nan"),
+        "state_to_action_p50_us": _pct(sta, 50), "state_to_action_p99_us": _pct(sta, 99),
+        "state_to_action_max_us": float(sta.max() * 1e6) if sta.size else float("nan"),
+        "deadline_misses": tot("deadline_misses"), "skipped_ticks": tot("skipped"), "agent_ticks": tot("ticks"),
+        "agent_faults": tot("faults"), "waiting_ticks": tot("waiting"), "no_state_ticks": tot("no_state"),
+        "comms": comms.as_dict(),
+        "faults_by_agent": {spec.team.agent_ids()[r["index"]]: r["stats"]["last_fault"]
+                            for r in agents if r["stats"]["faults"]},
+        "rss_mib": round(rss_kib / 1024.0, 1) if rss_kib > 0 else None,
+        "config": {"duration_s": cfg.duration_s, "rate_hz": cfg.rate_hz or 1.0 / spec.timing.control_period,
+                   "processes": cfg.processes, "loss": cfg.comms.loss, "latency_s": cfg.comms.latency_s,
+                   "bandwidth_bps": cfg.comms.bandwidth_bps, "comm_range": cfg.comms.range_for(spec),
+                   "seed": cfg.seed, "stagger": cfg.stagger, "warm": cfg.warm, "agents": spec.n_agents,
+                   "spec_hash": spec.hash, "observability": spec.sensing.observability,
+                   "cpus": os.cpu_count()},
+    })
+    return out
+
+
+__all__ = ["WorldBoard", "WorldSource", "WorldSink", "RunConfig", "run_swarm"]
