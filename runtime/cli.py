@@ -1,0 +1,251 @@
+"""``swarm-runtime``: run the per-drone runtimes against the simulated world, in real time.
+
+``run``      every agent of a models folder on its own thread (or process) against one env; prints the paper's
+             metrics and the loop timing, optionally writes them as JSON.
+``degrade``  ``run`` over a grid of message loss x latency; writes a metrics table (Markdown and JSON).
+
+A bad models folder (or any input error) prints the named error with its fix and exits 2, never a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+
+from runtime.comms import CommConfig
+from runtime.spec import SpecError
+
+JSON_KEYS = ("mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage", "collisions_per_episode",
+             "episodes", "tick_to_action_p50_us", "tick_to_action_p99_us", "deadline_misses", "steps")
+"""Keys every ``run --json`` file has (the evaluator's metric keys plus the loop timing)."""
+
+_METRIC_LABELS = (("episodes", "episodes"), ("mean_min_dist", "min pursuer-target distance [m]"),
+                  ("mean_avg_dist", "mean pursuer-target distance [m]"),
+                  ("mean_max_dist", "max pursuer-target distance [m]"),
+                  ("tracking_rate", "tracking rate (target within sensing range)"),
+                  ("coverage", "coverage (episode)"), ("collisions_per_episode", "collisions / episode"),
+                  ("captures_per_episode", "captures / episode"))
+
+
+def _probability(text: str) -> float:
+    v = float(text)
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"a probability in [0, 1], got {text}")
+    return v
+
+
+def _nonneg(text: str) -> float:
+    v = float(text)
+    if not (v >= 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"a finite number >= 0, got {text}")
+    return v
+
+
+def _positive(text: str) -> float:
+    v = float(text)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"a number > 0, got {text}")
+    return v
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a comma-separated list of numbers, got {text!r}") from None
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--models", required=True, type=Path,
+                   help="models folder written by `swarm-export onnx` (manifest.json + one ONNX actor per agent)")
+    p.add_argument("--rate", type=_positive, default=None,
+                   help="agents' control rate [Hz] (default: 1 / spec control period; the world steps at that)")
+    p.add_argument("--processes", action="store_true",
+                   help="each agent in its own process, messages over UDP on loopback (default: threads)")
+    p.add_argument("--bandwidth", type=_positive, default=math.inf, help="each sender's channel rate [bit/s]")
+    p.add_argument("--comm-range", type=_positive, default=None,
+                   help="radio range [m] (default: the spec's comm_range with partial observability, unlimited "
+                        "with full)")
+    p.add_argument("--jitter", type=_nonneg, default=0.0, help="extra uniform message delay up to this [s]")
+    p.add_argument("--seed", type=int, default=0, help="world and channel seed")
+    p.add_argument("--no-stagger", action="store_true", help="all agents tick at the same instant")
+    p.add_argument("--no-warm", action="store_true", help="no warm-up inference before the tick")
+
+
+def _run_config(args: argparse.Namespace, duration: float, loss: float, latency: float):
+    from runtime.swarm import RunConfig
+    comms = CommConfig(latency_s=latency, jitter_s=args.jitter, loss=loss, bandwidth_bps=args.bandwidth,
+                       comm_range=args.comm_range, seed=args.seed)
+    return RunConfig(duration_s=duration, rate_hz=args.rate, comms=comms, processes=args.processes, seed=args.seed,
+                     stagger=not args.no_stagger, warm=not args.no_warm)
+
+
+def format_run(res: dict) -> str:
+    c = res["config"]
+    lines = [f"{c['agents']} agents ({'processes, UDP' if c['processes'] else 'threads, in-process bus'}) at "
+             f"{c['rate_hz']:g} Hz for {c['duration_s']:g} s; loss {c['loss']:g}, latency {c['latency_s'] * 1e3:g} ms, "
+             f"spec {c['spec_hash']} ({c['observability']} observability)", ""]
+    w = max(len(label) for _, label in _METRIC_LABELS)
+    for key, label in _METRIC_LABELS:
+        v = res.get(key)
+        if v is not None:
+            lines.append(f"  {label.ljust(w)}  {v if isinstance(v, int) else f'{v:.4f}'}")
+    lines += ["", f"  world steps {res['steps']}, agent ticks {res['agent_ticks']}",
+              f"  tick-to-action  p50 {res['tick_to_action_p50_us']:.0f} us  p99 {res['tick_to_action_p99_us']:.0f} us  "
+              f"max {res['tick_to_action_max_us']:.0f} us",
+              f"  state-to-action p50 {res['state_to_action_p50_us']:.0f} us  p99 {res['state_to_action_p99_us']:.0f} us"
+              f"  max {res['state_to_action_max_us']:.0f} us",
+              f"  deadline misses {res['deadline_misses']} (skipped ticks {res['skipped_ticks']}), "
+              f"faults {res['agent_faults']}, waiting for neighbours {res['waiting_ticks']} ticks",
+              "  messages " + ", ".join(f"{k} {v}" for k, v in res["comms"].items() if v)]
+    if res.get("rss_mib"):
+        lines.append(f"  resident memory {res['rss_mib']} MiB" + (" (sum over agent processes)" if c["processes"]
+                                                                  else " (the agents' process)"))
+    for agent, fault in res.get("faults_by_agent", {}).items():
+        lines.append(f"  fault in {agent}: {fault}")
+    return "\n".join(lines)
+
+
+def _json_safe(obj):
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from runtime.swarm import run_swarm
+    res = run_swarm(args.models, _run_config(args, args.duration, args.loss, args.latency))
+    print(format_run(res))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(_json_safe(res), indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+def add_run(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run every agent against the simulated world in real time",
+                       description="Every agent of a models folder on its own thread (or process) against one env "
+                                   "of runtime.world in real time; prints the paper's metrics and the loop timing.")
+    _common(p)
+    p.add_argument("--duration", type=_positive, default=30.0, help="seconds of real time")
+    p.add_argument("--loss", type=_probability, default=0.0, help="message loss probability")
+    p.add_argument("--latency", type=_nonneg, default=0.0, help="message latency [s]")
+    p.add_argument("--json", type=Path, default=None, help="also write the results to this JSON file")
+    p.set_defaults(func=_cmd_run)
+
+
+DEGRADE_COLUMNS = (("tracking_rate", "tracking", "{:.3f}"), ("mean_min_dist", "min dist [m]", "{:.3f}"),
+                   ("mean_avg_dist", "mean dist [m]", "{:.3f}"), ("coverage", "coverage", "{:.3f}"),
+                   ("collisions_per_episode", "collisions/ep", "{:.2f}"), ("episodes", "episodes", "{}"),
+                   ("delivered_fraction", "delivered", "{:.3f}"), ("tick_to_action_p99_us", "p99 [us]", "{:.0f}"),
+                   ("deadline_misses", "misses", "{}"))
+
+
+def _cmd_degrade(args: argparse.Namespace) -> int:
+    from runtime.swarm import run_swarm
+    rows = []
+    t0 = time.time()
+    for latency in args.latencies:
+        for loss in args.losses:
+            res = run_swarm(args.models, _run_config(args, args.duration, loss, latency))
+            c = res["comms"]
+            heard = c["delivered"] + c["dropped_loss"] + c["dropped_range"]
+            res["delivered_fraction"] = c["delivered"] / heard if heard else float("nan")
+            rows.append({"loss": loss, "latency_s": latency, **res})
+            print(f"loss {loss:g} latency {latency * 1e3:g} ms: tracking {res['tracking_rate']:.3f}, min dist "
+                  f"{res['mean_min_dist']:.3f} m, p99 {res['tick_to_action_p99_us']:.0f} us", flush=True)
+    out = args.out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"models": str(args.models), "duration_s_per_cell": args.duration, "seed": args.seed,
+            "rate_hz": rows[0]["config"]["rate_hz"], "processes": args.processes,
+            "spec_hash": rows[0]["config"]["spec_hash"], "observability": rows[0]["config"]["observability"],
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t0)), "machine": _machine(),
+            "wall_s": round(time.time() - t0, 1)}
+    out.with_suffix(".json").write_text(json.dumps(_json_safe({"meta": meta, "rows": rows}), indent=2) + "\n")
+    out.with_suffix(".md").write_text(degradation_markdown(meta, rows))
+    print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}")
+    return 0
+
+
+def _machine() -> str:
+    return f"{platform.machine()} {platform.processor() or ''} Linux {platform.release()}, {_ncpu()} CPUs".strip()
+
+
+def _ncpu() -> int:
+    import os
+    return os.cpu_count() or 0
+
+
+def degradation_markdown(meta: dict, rows: list[dict]) -> str:
+    head = "| loss | latency [ms] | " + " | ".join(c[1] for c in DEGRADE_COLUMNS) + " |"
+    sep = "|" + "---|" * (2 + len(DEGRADE_COLUMNS))
+    lines = [f"# Runtime degradation: message loss x latency", "",
+             f"`swarm-runtime degrade --models {meta['models']} --duration {meta['duration_s_per_cell']:g}` "
+             f"({meta['date']}, {meta['machine']}); {meta['rate_hz']:g} Hz agents, "
+             f"{'processes over UDP' if meta['processes'] else 'threads over the in-process bus'}, spec "
+             f"{meta['spec_hash']} ({meta['observability']} observability), world seed {meta['seed']} in every "
+             f"cell (same episodes; differences come from the channel and from thread timing).", "",
+             head, sep]
+    for r in rows:
+        cells = []
+        for key, _, fmt in DEGRADE_COLUMNS:
+            v = r.get(key)
+            cells.append("-" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v))
+        lines.append(f"| {r['loss']:g} | {r['latency_s'] * 1e3:g} | " + " | ".join(cells) + " |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def add_degrade(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("degrade", help="run over message loss x latency and write the metrics table",
+                       description="`run` for every (loss, latency) pair; writes OUT.md and OUT.json.")
+    _common(p)
+    p.add_argument("--duration", type=_positive, default=30.0, help="seconds of real time per cell")
+    p.add_argument("--losses", type=_floats, default=[0.0, 0.2, 0.5], help="comma-separated loss probabilities")
+    p.add_argument("--latencies", type=_floats, default=[0.0, 0.05, 0.2], help="comma-separated latencies [s]")
+    p.add_argument("--out", type=Path, default=Path("results/runtime_degradation"),
+                   help="output path without suffix (writes .md and .json)")
+    p.set_defaults(func=_cmd_degrade)
+
+
+SUBCOMMANDS = [add_run, add_degrade]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="swarm-runtime", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="log faults and progress")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR, format="%(message)s")
+    from runtime.policy import PolicyError
+    try:
+        return args.func(args)
+    except (PolicyError, SpecError) as exc:
+        print(f"swarm-runtime {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
+    except (RuntimeError, OSError) as exc:
+        print(f"swarm-runtime {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"swarm-runtime {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
