@@ -58,7 +58,23 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_c)
 
 
-SUBCOMMANDS = [add_c]
+def add_onnx(sub: argparse._SubParsersAction) -> None:
+    """``swarm-export onnx`` (firmware_export.onnx_export); it needs torch, so without it the subcommand only
+    says how to install it."""
+    try:
+        from firmware_export.onnx_export import add_onnx_parser
+    except ImportError as exc:
+        p = sub.add_parser("onnx", help="write one ONNX actor per agent (needs the 'train' extra: torch)")
+
+        def _missing(args: argparse.Namespace) -> int:
+            raise CExportError(f"swarm-export onnx needs torch ({exc}); install it with "
+                               "`pip install -c constraints.txt '.[train]'`")
+        p.set_defaults(func=_missing)
+        return
+    add_onnx_parser(sub)
+
+
+SUBCOMMANDS = [add_onnx, add_c]
 """One registration function per subcommand."""
 
 

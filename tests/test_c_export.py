@@ -308,6 +308,12 @@ def test_cli_writes_sources_and_reports_errors_without_traceback(work, pursuer_o
     assert "--quant" in capsys.readouterr().out
 
 
+def test_cli_registers_the_onnx_subcommand(work, capsys):
+    assert main(["onnx", "--run", str(work / "no_such_run"), "--out", str(work / "models")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("swarm-export onnx:") and "no_such_run" in err and "Traceback" not in err
+
+
 # --------------------------------------------------------------------------------------------------
 # Cortex-M4
 
