@@ -1,0 +1,61 @@
+"""Models and helpers for the flight tests.
+
+``write_models`` writes a models folder in the exact format of ``swarm-export onnx`` (one ONNX actor per
+agent with the spec metadata, ``manifest.json`` with sha256s) without torch: each actor is a small
+tanh MLP built with ``onnx.helper`` from seeded random weights, which takes milliseconds instead of the
+exporter's tracing. ``nan_actors`` get NaN weights (an actor whose output is never finite).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+from runtime.spec import SwarmSpec
+
+
+def _actor(spec: SwarmSpec, agent_id: str, role, rng: np.random.Generator, hidden: int, nan: bool) -> onnx.ModelProto:
+    d = spec.obs_dim(role)
+    w1 = (rng.standard_normal((d, hidden)) / np.sqrt(d)).astype(np.float32)
+    w2 = (rng.standard_normal((hidden, spec.act_dim)) / np.sqrt(hidden)).astype(np.float32)
+    if nan:
+        w2[:] = np.nan
+    inits = [numpy_helper.from_array(w1, "w1"), numpy_helper.from_array(np.zeros(hidden, np.float32), "b1"),
+             numpy_helper.from_array(w2, "w2"), numpy_helper.from_array(np.zeros(spec.act_dim, np.float32), "b2")]
+    nodes = [helper.make_node("MatMul", ["obs", "w1"], ["h0"]), helper.make_node("Add", ["h0", "b1"], ["h1"]),
+             helper.make_node("Tanh", ["h1"], ["h"]), helper.make_node("MatMul", ["h", "w2"], ["a0"]),
+             helper.make_node("Add", ["a0", "b2"], ["a1"]), helper.make_node("Tanh", ["a1"], ["action"])]
+    graph = helper.make_graph(nodes, agent_id, [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["batch", d])],
+                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", spec.act_dim])],
+                              inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 9
+    meta = {"spec_hash": spec.hash, "role": role.label, "agent_id": agent_id,
+            "spec_json": json.dumps(spec.to_dict(), sort_keys=True), "obs_dim": str(d), "act_dim": str(spec.act_dim)}
+    for k, v in meta.items():
+        e = model.metadata_props.add()
+        e.key, e.value = k, v
+    onnx.checker.check_model(model)
+    return model
+
+
+def write_models(out: Path, spec: SwarmSpec | None = None, seed: int = 0, hidden: int = 32,
+                 nan_actors: tuple[str, ...] = ()) -> Path:
+    """A models folder for ``spec`` (default ``SwarmSpec()``) in ``out``; returns ``out``."""
+    spec = spec or SwarmSpec()
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    entries = []
+    for agent_id, role in zip(spec.team.agent_ids(), spec.roles):
+        path = out / f"{agent_id}.onnx"
+        path.write_bytes(_actor(spec, agent_id, role, rng, hidden, agent_id in nan_actors).SerializeToString())
+        entries.append({"id": agent_id, "role": role.label, "file": path.name,
+                        "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "obs_dim": spec.obs_dim(role)})
+    manifest = {"format": 1, "spec_hash": spec.hash, "spec": spec.to_dict(), "agents": entries,
+                "config": {"note": "random test actors (tests/flight_fixtures.py)"}, "evaluation": None}
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    return out
