@@ -29,12 +29,15 @@ epoch      u16    episode / mission counter; messages of another epoch are ignor
 seq        u32    sender's message counter
 t_tx       f64    swarm-clock time the message finished leaving the sender [s]
 t_state    f64    timestamp of the position and velocity [s]
-x y vx vy  4 f32  sender's position [m] and velocity [m/s], world frame
+x y vx vy  4 f64  sender's position [m] and velocity [m/s], world frame
 --------   -----  per sighting:
 target     u8     evader number (0 = first evader)
-x y vx vy  4 f32  its position [m] and velocity [m/s] when seen
+x y vx vy  4 f64  its position [m] and velocity [m/s] when seen
 t_seen     f64    when it was seen [s]
 =========  =====  ===========================================================================
+
+Numbers travel as float64 so that a drone's belief of a neighbour is bit-identical to the neighbour's own
+state (the observation a drone builds equals the training encoder's on the same state): 142 B for 2 evaders.
 """
 from __future__ import annotations
 
@@ -52,10 +55,10 @@ from runtime.spec import SpecError, SwarmSpec
 
 MAGIC = b"SP"
 WIRE_VERSION = 1
-HEADER = struct.Struct("<2sBBBBHIdd4f")
-SIGHT = struct.Struct("<B4fd")
-MAX_BYTES = 128
-"""Default largest accepted message [bytes] (a message for 4 evaders is 144 B: raise ``max_bytes`` then)."""
+HEADER = struct.Struct("<2sBBBBHIdd4d")
+SIGHT = struct.Struct("<B4dd")
+MAX_BYTES = 256
+"""Default largest accepted message [bytes]: a header (60 B) and up to 4 sightings (41 B each)."""
 _RECV_BUF = 2048
 
 
