@@ -58,20 +58,28 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_c)
 
 
-def add_onnx(sub: argparse._SubParsersAction) -> None:
-    """``swarm-export onnx`` (firmware_export.onnx_export); it needs torch, so without it the subcommand only
-    says how to install it."""
+def _cmd_onnx(args: argparse.Namespace) -> int:
     try:
-        from firmware_export.onnx_export import add_onnx_parser
+        from firmware_export.onnx_export import run_onnx_command
     except ImportError as exc:
-        p = sub.add_parser("onnx", help="write one ONNX actor per agent (needs the 'train' extra: torch)")
+        raise CExportError(f"swarm-export onnx needs torch ({exc}); install it with "
+                           "`pip install -c constraints.txt '.[train]'`") from None
+    return run_onnx_command(args)
 
-        def _missing(args: argparse.Namespace) -> int:
-            raise CExportError(f"swarm-export onnx needs torch ({exc}); install it with "
-                               "`pip install -c constraints.txt '.[train]'`")
-        p.set_defaults(func=_missing)
-        return
-    add_onnx_parser(sub)
+
+def add_onnx(sub: argparse._SubParsersAction) -> None:
+    """``swarm-export onnx`` (firmware_export.onnx_export, imported only when it runs: it needs torch, which
+    ``swarm-export c`` does not)."""
+    p = sub.add_parser("onnx", help="write one ONNX actor per agent and a manifest.json (parity-checked)",
+                       description="Export every actor of a training run (runs/NAME/actors.pt) to ONNX with the "
+                                   "spec in its metadata, checked against torch on random and recorded "
+                                   "observations.")
+    p.add_argument("--run", required=True, help="training run folder holding actors.pt (runs/NAME)")
+    p.add_argument("--out", required=True, help="models folder to write (models/NAME/)")
+    p.add_argument("--random", type=int, default=10_000, help="random observations for the parity check")
+    p.add_argument("--recorded", type=int, default=10_000, help="recorded observations for the parity check")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_onnx)
 
 
 SUBCOMMANDS = [add_onnx, add_c]

@@ -242,7 +242,8 @@ def export_run(run_dir: str | Path, out_dir: str | Path, n_random: int = 10_000,
 
 
 # --------------------------------------------------------------------------------------------------
-# CLI hook: firmware_export.cli registers this as `swarm-export onnx`
+# CLI hook: `swarm-export onnx` (firmware_export.cli.add_onnx declares the same arguments without importing
+# torch and calls run_onnx_command); add_onnx_parser is kept for embedding in other parsers
 
 
 def add_onnx_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
