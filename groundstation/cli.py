@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import threading
@@ -55,7 +56,166 @@ def _run_sim(args: argparse.Namespace) -> int:
     return 0
 
 
-SUBCOMMANDS = (_add_sim,)
+def _kill_link(text: str) -> tuple[str, float]:
+    drone, sep, at = text.partition("@")
+    try:
+        t = float(at)
+    except ValueError:
+        t = math.nan
+    if not sep or not drone or not (t >= 0 and math.isfinite(t)):
+        raise argparse.ArgumentTypeError(f"expected DRONE@SECONDS (e.g. 3@10 or cf3@10), got {text!r}")
+    return drone, t
+
+
+def _add_demo(subparsers: argparse._SubParsersAction) -> None:
+    from groundstation.demo import DemoOptions
+    d = DemoOptions()
+    p = subparsers.add_parser(
+        "demo", help="fly the whole stack against 12 simulated Crazyflies through cflib",
+        description="Start 12 simulated Crazyflies (5 pursuers, 5 scouts, 2 evaders), connect through cflib over "
+                    "udp://, assign roles, fly the mission with the exported actors, land, and print the paper's "
+                    "metrics and link statistics. Ctrl-C lands everyone.")
+    p.add_argument("--duration", type=float, default=d.duration, help=f"mission time [s] (default {d.duration:g})")
+    p.add_argument("--speed", type=float, default=d.speed,
+                   help="multiplier on the policies' velocity commands (default 1)")
+    p.add_argument("--kill-link", type=_kill_link, default=None, metavar="DRONE@T",
+                   help="cut drone DRONE's link (index or id, e.g. 3 or cf3) T s into the mission")
+    p.add_argument("--loss", type=float, default=d.loss, help="probability of losing each datagram (default 0)")
+    p.add_argument("--json", default=None, metavar="PATH", help="write the results to this JSON file")
+    p.add_argument("--log", default=None, metavar="PATH", help="write the flight log (JSON lines) here")
+    p.add_argument("--plot", default=None, metavar="PNG", help="draw the trajectories to this picture")
+    p.add_argument("--models", default=d.models, help=f"models folder from swarm-export onnx (default {d.models})")
+    p.add_argument("--spec", default=d.spec, metavar="TOML",
+                   help=f"experiment TOML whose [spec] the ground station uses (default {d.spec})")
+    p.add_argument("--fence", default=d.fence, metavar="TOML", help=f"geofence (default {d.fence}); its "
+                   "keep-out circles are replaced by the obstacles drawn for the demo")
+    p.add_argument("--anchors", default=d.anchors, metavar="TOML", help=f"LPS anchors (default {d.anchors})")
+    p.add_argument("--flight-config", default=None, metavar="TOML", help="TOML with a [flight] table")
+    p.add_argument("--seed", type=int, default=d.seed, help="obstacles, start positions, noise (default 0)")
+    p.add_argument("--base-port", type=int, default=None, help="UDP port of drone 0 (default: a free range)")
+    p.set_defaults(func=_run_demo)
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from groundstation.demo import DemoError, DemoOptions, format_summary, run_demo
+    from groundstation.flight import PreflightError
+    from runtime.policy import PolicyError
+    from runtime.spec import SpecError
+    opts = DemoOptions(duration=args.duration, speed=args.speed, kill_link=args.kill_link, loss=args.loss,
+                       models=args.models, spec=args.spec, fence=args.fence, anchors=args.anchors,
+                       flight=args.flight_config, seed=args.seed, json_path=args.json, log_path=args.log,
+                       plot_path=args.plot, base_port=args.base_port)
+    try:
+        res = run_demo(opts)
+    except (DemoError, PolicyError, SpecError, PreflightError, SimError) as exc:
+        print(f"swarm-gs demo: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("swarm-gs demo: interrupted; every reachable drone was landed", file=sys.stderr)
+        return 130
+    print(format_summary(res))
+    for flag, path in (("json", args.json), ("log", args.log), ("plot", args.plot)):
+        if path:
+            print(f"wrote {path}")
+    return 0
+
+
+def _add_fleet_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--fleet", required=True, metavar="TOML",
+                   help="fleet file: drones by URI and team, models, fence (see configs/fleet_example.toml)")
+
+
+def _add_fly(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("fly", help="fly real drones (radio:// URIs from a fleet file)",
+                              description="Preflight, role assignment, staggered takeoff, the mission with the "
+                                          "exported actors, landing. Ctrl-C lands everyone; a second Ctrl-C cuts "
+                                          "every motor (emergency stop).")
+    _add_fleet_arg(p)
+    p.add_argument("--duration", type=float, default=60.0, help="mission time [s] (default 60)")
+    p.add_argument("--log", default=None, metavar="PATH", help="write the flight log (JSON lines) here")
+    p.set_defaults(func=_run_fly)
+
+
+def _fleet_errors():
+    from groundstation.flight import PreflightError
+    from groundstation.link import LinkError
+    from runtime.policy import PolicyError
+    from runtime.spec import SpecError
+    return (PreflightError, LinkError, PolicyError, SpecError)
+
+
+def _run_fly(args: argparse.Namespace) -> int:
+    from groundstation.fleet import FleetConfig, fly
+    stop = threading.Event()
+    presses = []
+
+    def on_sigint(signum, frame):
+        presses.append(signum)
+        if len(presses) == 1:
+            print("landing everyone (Ctrl-C again: emergency stop)", file=sys.stderr, flush=True)
+            stop.set()
+        else:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+            raise KeyboardInterrupt
+
+    try:
+        fleet, flight = FleetConfig.from_toml(args.fleet)
+        previous = signal.signal(signal.SIGINT, on_sigint)
+        try:
+            res = fly(fleet, flight, args.duration, args.log, stop)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+    except _fleet_errors() as exc:
+        print(f"swarm-gs fly: {exc}", file=sys.stderr)
+        return 2
+    for t, drone, kind, detail in res["events"]:
+        print(f"  t={t:8.2f} s {drone or '':>6} {kind}: {detail}")
+    print(f"final: {res['final_status']}; geofence violations {res['geofence_violations']}")
+    return 0
+
+
+def _add_land(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("land", help="land every drone of a fleet that is still flying")
+    _add_fleet_arg(p)
+    p.set_defaults(func=_run_land)
+
+
+def _run_land(args: argparse.Namespace) -> int:
+    from groundstation.fleet import FleetConfig, land_fleet
+    try:
+        fleet, _ = FleetConfig.from_toml(args.fleet)
+        out = land_fleet(fleet)
+    except _fleet_errors() as exc:
+        print(f"swarm-gs land: {exc}", file=sys.stderr)
+        return 2
+    for d, s in out.items():
+        print(f"{d}: {s}")
+    return 0
+
+
+def _add_status(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("status", help="connect to every drone of a fleet and print its state")
+    _add_fleet_arg(p)
+    p.set_defaults(func=_run_status)
+
+
+def _run_status(args: argparse.Namespace) -> int:
+    from groundstation.fleet import FleetConfig, fleet_status
+    try:
+        fleet, _ = FleetConfig.from_toml(args.fleet)
+        rows = fleet_status(fleet)
+    except _fleet_errors() as exc:
+        print(f"swarm-gs status: {exc}", file=sys.stderr)
+        return 2
+    for r in rows:
+        pos = "-" if r["position"] is None else "(" + ", ".join(f"{c:+.2f}" for c in r["position"]) + ")"
+        print(f"{r['drone']:>6} {r['uri']:<32} {r['team']:<8} {r['state']:<9} {r['battery_v'] or '-':>5} V  "
+              f"{pos}  var {r['position_variance'] if r['position_variance'] is not None else '-'}  "
+              f"fence {r['fence']}  link {r['link_quality']}  {r['telemetry_per_s']}/s")
+    return 0
+
+
+SUBCOMMANDS = (_add_sim, _add_demo, _add_fly, _add_land, _add_status)
 
 
 def build_parser() -> argparse.ArgumentParser:
