@@ -122,7 +122,7 @@ class SimCrazyflie:
 
     def _snapshot(self, now: float) -> dict:
         i, fw, m = self.index, self.firmware, self.model
-        pos = m.estimated_position(i, fw.extpos_fresh(now))
+        pos = m.estimated_position(i, fw.extpos_fresh(now), fw.extpos, fw.extpos_age(now))
         vel = m.estimated_velocity(i)
         var = fw.position_variance(now)
         info = fw.supervisor_info()

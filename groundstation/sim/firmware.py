@@ -220,6 +220,10 @@ class Firmware:
     def extpos_fresh(self, now: float) -> bool:
         return now - self._extpos_time < EXTPOS_FRESH_S
 
+    def extpos_age(self, now: float) -> float:
+        """Seconds since the latest external position [s]."""
+        return now - self._extpos_time
+
     def reset_estimation(self, now: float) -> None:
         self._reset_time = now
 
@@ -316,13 +320,15 @@ class Firmware:
             self.mode = Mode.IDLE
             self._segment = None
             self._landing = False
-            if pos[2] <= self.params.ground_z + LANDED_HEIGHT_M:
-                self.state = SupervisorState.READY
+            # The motors stop; the supervisor reports "ready" (landed) once the drone rests on the floor.
             return np.zeros(3), 0.0, False
         yaw0, yaw1 = self._segment_yaw
         frac = 1.0 if seg.duration <= 0 else min(max((now - seg.t0) / seg.duration, 0.0), 1.0)
         yaw_ref = yaw0 + _wrap_deg(yaw1 - yaw0) * frac
-        return ref_v + self.params.kp_pos * (ref_p - pos), self.params.kp_pos * _wrap_deg(yaw_ref - yaw_deg), True
+        # Velocity and acceleration feed-forward from the planner, as the firmware's controllers use them:
+        # with the first-order velocity response (tau) this tracks the trajectory without lagging behind it.
+        ff = ref_v + self.params.tau * seg.acceleration(now)
+        return ff + self.params.kp_pos * (ref_p - pos), self.params.kp_pos * _wrap_deg(yaw_ref - yaw_deg), True
 
 
 def _wrap_deg(a: float) -> float:

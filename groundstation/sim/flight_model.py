@@ -115,10 +115,16 @@ class QuadBatch:
         """A fresh estimator starts from a new draw of the error process."""
         self._est_err[i] = self._sigma * self._rng.standard_normal(3)
 
-    def estimated_position(self, i: int, extpos_fresh: bool) -> np.ndarray:
-        """Position as the onboard Kalman filter reports it (truth plus correlated LPS-like error)."""
+    def estimated_position(self, i: int, extpos_fresh: bool, extpos: np.ndarray | None = None,
+                           extpos_age: float = 0.0) -> np.ndarray:
+        """Position as the onboard Kalman filter reports it: truth plus correlated LPS-like error, or, while
+        external positions (motion capture) arrive, the latest one propagated by the velocity plus a small
+        error (the filter trusts extpos far more than its own prediction)."""
+        small = self._est_err[i] * (self.params.extpos_sigma / self.params.lps_sigma_xy)
+        if extpos_fresh and extpos is not None:
+            return np.asarray(extpos, dtype=float) + self.vel[i] * extpos_age + small
         if extpos_fresh:
-            return self.pos[i] + self._est_err[i] * (self.params.extpos_sigma / self.params.lps_sigma_xy)
+            return self.pos[i] + small
         return self.pos[i] + self._est_err[i]
 
     def estimated_velocity(self, i: int) -> np.ndarray:
@@ -138,6 +144,14 @@ def smooth_segment(tau: float) -> tuple[float, float]:
     s = t**4 * (35.0 - 84.0 * t + 70.0 * t * t - 20.0 * t**3)
     ds = t**3 * (140.0 - 420.0 * t + 420.0 * t * t - 140.0 * t**3)
     return s, ds
+
+
+def smooth_segment_dd(tau: float) -> float:
+    """d^2 s / d tau^2 of ``smooth_segment`` (zero outside [0, 1])."""
+    if not 0.0 <= tau <= 1.0:
+        return 0.0
+    t = tau
+    return t * t * (420.0 - 1680.0 * t + 2100.0 * t * t - 840.0 * t**3)
 
 
 @dataclass(frozen=True)
@@ -166,6 +180,13 @@ class Segment:
         else:
             s, ds = smooth_segment(tau)
         return start + (end - start) * s, (end - start) * ds / self.duration
+
+    def acceleration(self, t: float) -> np.ndarray:
+        """Reference acceleration [m/s^2] at time ``t`` (the planner's feed-forward term)."""
+        if self.duration <= 0.0 or self.linear:
+            return np.zeros(3)
+        dd = smooth_segment_dd((t - self.t0) / self.duration)
+        return (np.asarray(self.end) - np.asarray(self.start)) * dd / self.duration**2
 
     def finished(self, t: float) -> bool:
         return t >= self.t0 + self.duration

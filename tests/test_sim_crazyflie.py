@@ -1,0 +1,344 @@
+"""The simulated Crazyflie, driven by unmodified cflib over UDP (never a mock of cflib)."""
+from __future__ import annotations
+
+import socket
+import struct
+import subprocess
+import sys
+import time
+import warnings
+
+import numpy as np
+import pytest
+
+cflib = pytest.importorskip("cflib")
+
+import cflib.crtp  # noqa: E402
+from cflib.crazyflie import Crazyflie  # noqa: E402
+from cflib.crazyflie.log import LogConfig  # noqa: E402
+from cflib.crazyflie.swarm import CachedCfFactory, Swarm  # noqa: E402
+from cflib.crazyflie.syncCrazyflie import SyncCrazyflie  # noqa: E402
+from cflib.crazyflie.syncLogger import SyncLogger  # noqa: E402
+
+from groundstation.sim import crtp  # noqa: E402
+from groundstation.sim.firmware import Firmware, Mode, SupervisorState  # noqa: E402
+from groundstation.sim.flight_model import QuadBatch, QuadParams  # noqa: E402
+from groundstation.sim.swarm import SimError, SimSwarm, free_base_port  # noqa: E402
+
+cflib.crtp.init_drivers()
+
+
+@pytest.fixture
+def sims(request):
+    n = getattr(request, "param", 1)
+    with SimSwarm(n, base_port=free_base_port(n), seed=7) as swarm:
+        yield swarm
+
+
+def _connect(uri: str, tmp_path=None) -> SyncCrazyflie:
+    cf = Crazyflie(rw_cache=str(tmp_path) if tmp_path else None)
+    scf = SyncCrazyflie(uri, cf=cf)
+    scf.open_link()
+    return scf
+
+
+def _wait(predicate, timeout: float, period: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period)
+    return predicate()
+
+
+def _first_log(scf: SyncCrazyflie, names: list[str], period_ms: int = 10) -> dict:
+    config = LogConfig("probe", period_ms)
+    for name in names:
+        config.add_variable(name, "float")
+    with SyncLogger(scf, config) as logger:
+        for _, data, _ in logger:
+            return data
+
+
+def _stream(send, seconds: float, rate_hz: float = 50.0) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        send()
+        time.sleep(1.0 / rate_hz)
+
+
+# ---- raw protocol --------------------------------------------------------------------------------
+
+def _raw(port: int, datagram: bytes) -> bytes:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(1.0)
+        s.connect(("127.0.0.1", port))
+        s.send(datagram)
+        return s.recv(64)
+
+
+def test_link_echo_source_version_and_scan_probe(sims):
+    port = sims.base_port
+    assert _raw(port, bytes((crtp.header(15, 0),)) + b"ping") == bytes((0xF0,)) + b"ping"
+    source = _raw(port, bytes((crtp.header(15, 1), 0)))
+    assert source[1:19] == b"Bitcraze Crazyflie" and len(source) == 31
+    assert _raw(port, bytes((crtp.header(13, 1), 0))) == bytes((0xD1, 0, crtp.PROTOCOL_VERSION))
+    assert _raw(port, bytes((crtp.header(13, 1), 1)))[2:].decode() == crtp.FIRMWARE_VERSION
+    assert _raw(port, b"\xff")[0] == 0xF3  # the UDP driver's scan probe gets an answer
+
+
+def test_malformed_packets_are_dropped_and_the_server_keeps_answering(sims):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.connect(("127.0.0.1", sims.base_port))
+        for junk in (b"\x70\x07\x01", b"\x80\x07", b"\x20\x01", b"\x50\x01\x06\x01\x07", b"\x90"):
+            s.send(junk)
+    assert _raw(sims.base_port, b"\xf0ok") == b"\xf0ok"
+
+
+def test_busy_port_is_a_named_error(sims):
+    with pytest.raises(SimError, match="another simulator"):
+        SimSwarm(1, base_port=sims.base_port).start()
+
+
+# ---- cflib end to end ----------------------------------------------------------------------------
+
+def test_cflib_connects_reads_tocs_and_params(sims, tmp_path):
+    scf = _connect(sims.uris[0], tmp_path)
+    try:
+        cf = scf.cf
+        assert cf.platform.get_protocol_version() == crtp.PROTOCOL_VERSION
+        names = {f"{g}.{n}" for g, group in cf.log.toc.toc.items() for n in group}
+        for required in ("stateEstimate.x", "stateEstimate.y", "stateEstimate.z", "stateEstimate.vx",
+                         "stateEstimate.vy", "stateEstimate.vz", "pm.vbat", "radio.rssi", "kalman.varPX",
+                         "kalman.varPY", "kalman.varPZ", "supervisor.info"):
+            assert required in names
+        assert cf.log.toc.get_element_by_complete_name("supervisor.info").ctype == "uint16_t"
+        scf.wait_for_params()
+        assert cf.param.get_value("stabilizer.estimator") == "2"
+        assert float(cf.param.get_value("hlCommander.vland")) == pytest.approx(0.2)
+        assert cf.mem.nbr_of_mems == 0
+        with pytest.raises(AttributeError, match="read-only"):
+            cf.param.set_value("deck.bcLoco", 0)
+        data = _first_log(scf, ["pm.vbat", "stateEstimate.z"])
+        assert 3.9 < data["pm.vbat"] <= 4.2 and abs(data["stateEstimate.z"]) < 0.2
+        assert cf.supervisor.read_state_list() == ["Is armed", "Is auto armed", "Can fly", "HL control is disabled"]
+    finally:
+        scf.close_link()
+    # The TOCs were cached by CRC: a second connection reads them from the cache.
+    assert list(tmp_path.glob("*.json"))
+    scf = _connect(sims.uris[0], tmp_path)
+    scf.close_link()
+
+
+def test_reset_estimation_param_write_restarts_the_estimator(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        scf.wait_for_params()
+        before = _first_log(scf, ["kalman.varPX"])["kalman.varPX"]
+        scf.cf.param.set_value("kalman.resetEstimation", "1")
+        assert _wait(lambda: scf.cf.param.get_value("kalman.resetEstimation") == "1", 1.0)  # echoed write
+        after = _first_log(scf, ["kalman.varPX"])["kalman.varPX"]
+        assert before < 0.01 and after > 0.1
+        time.sleep(1.5)
+        assert _first_log(scf, ["kalman.varPX"])["kalman.varPX"] < 0.002
+        assert sims.param(0, "kalman.resetEstimation") == 0  # the estimator cleared its flag
+
+
+def test_high_level_commander_takes_off_goes_to_and_lands(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        hl = scf.cf.high_level_commander
+        hl.takeoff(0.5, 1.2)  # within the model's limits: peak 0.9 m/s, 2.6 m/s^2
+        time.sleep(1.4)
+        assert sims.truth(0).position[2] == pytest.approx(0.5, abs=0.03)
+        assert "Is flying" in scf.cf.supervisor.read_state_list()
+        hl.go_to(1.0, 0.5, 0.8, 0.0, 1.5)
+        time.sleep(1.8)
+        assert np.allclose(sims.truth(0).position, (1.0, 0.5, 0.8), atol=0.05)
+        est = _first_log(scf, ["stateEstimate.x", "stateEstimate.y", "stateEstimate.z"])
+        assert np.allclose(list(est.values()), (1.0, 0.5, 0.8), atol=0.2)  # LPS-like noise, a few cm
+        time.sleep(0.7)  # the planner holds its last target without further commands (no watchdog)
+        assert np.allclose(sims.truth(0).position, (1.0, 0.5, 0.8), atol=0.05)
+        assert sims.truth(0).supervisor == "flying"
+        hl.land(0.0, 1.2)
+        assert _wait(lambda: sims.truth(0).supervisor == "ready", 3.0)
+        truth = sims.truth(0)
+        assert truth.position[2] == 0.0 and not truth.motors_on
+
+
+def test_streamed_setpoints_then_the_watchdog_levels_out_and_locks(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        commander = scf.cf.commander
+        x0, y0, _ = sims.truth(0).position
+        _stream(lambda: commander.send_position_setpoint(x0, y0, 0.5, 0.0), 1.2)
+        assert sims.truth(0).position[2] == pytest.approx(0.5, abs=0.05)
+        _stream(lambda: commander.send_velocity_world_setpoint(0.4, 0.0, 0.0, 0.0), 0.5)
+        assert sims.truth(0).velocity[0] == pytest.approx(0.4, abs=0.08)
+        _stream(lambda: commander.send_hover_setpoint(0.0, 0.0, 0.0, 0.7), 0.8)
+        assert sims.truth(0).position[2] == pytest.approx(0.7, abs=0.05)
+        t_last = time.monotonic()
+        time.sleep(0.8)  # > 0.5 s: level out and hold the height
+        truth = sims.truth(0)
+        assert truth.supervisor == "level_out" and truth.motors_on
+        assert truth.position[2] == pytest.approx(0.7, abs=0.06)
+        assert _wait(lambda: sims.is_locked(0), 2.5 - (time.monotonic() - t_last))
+        assert time.monotonic() - t_last > 1.9  # ... and at 2 s motors off, locked
+        assert _wait(lambda: sims.truth(0).position[2] == 0.0, 1.0)
+        assert "Is locked" in scf.cf.supervisor.read_state_list()
+        scf.cf.high_level_commander.takeoff(0.5, 1.0)  # a locked drone does not take off again
+        time.sleep(0.3)
+        assert sims.truth(0).position[2] == 0.0
+    sims.reboot(0)
+    assert sims.truth(0).supervisor == "ready"
+
+
+def test_notify_setpoint_stop_hands_over_to_the_high_level_commander(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        commander, hl = scf.cf.commander, scf.cf.high_level_commander
+        x0, y0, _ = sims.truth(0).position
+        _stream(lambda: commander.send_position_setpoint(x0, y0, 0.5, 0.0), 1.0)
+        hl.go_to(x0, y0, 0.9, 0.0, 1.0)  # refused: the streamed setpoint has priority
+        _stream(lambda: commander.send_position_setpoint(x0, y0, 0.5, 0.0), 0.3)
+        assert sims.truth(0).position[2] == pytest.approx(0.5, abs=0.05)
+        commander.send_notify_setpoint_stop(100)
+        hl.land(0.0, 1.0)
+        assert _wait(lambda: sims.truth(0).supervisor == "ready", 3.5)
+        assert not sims.is_locked(0)
+
+
+def test_stop_setpoint_cuts_the_motors_without_locking(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        scf.cf.high_level_commander.takeoff(0.3, 0.7)
+        time.sleep(0.8)
+        assert sims.truth(0).position[2] > 0.25
+        scf.cf.commander.send_stop_setpoint()
+        assert _wait(lambda: sims.truth(0).position[2] == 0.0, 1.0)
+        assert _wait(lambda: sims.truth(0).supervisor == "ready", 0.5)
+
+
+def test_emergency_stops_lock_the_drone(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        scf.cf.high_level_commander.takeoff(0.5, 0.8)
+        time.sleep(1.0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            scf.cf.loc.send_emergency_stop()  # cflib routes it to the supervisor port on protocol 12
+        assert _wait(lambda: sims.is_locked(0), 0.5)
+        assert _wait(lambda: sims.truth(0).position[2] == 0.0, 1.0)
+        pk = cflib.crtp.crtpstack.CRTPPacket()  # the legacy localization-port emergency stop works too
+        pk.set_header(6, 1)
+        pk.data = bytes((3,))
+        sims.reboot(0)
+        scf.cf.send_packet(pk)
+        assert _wait(lambda: sims.is_locked(0), 0.5)
+    sims.reboot(0)
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        scf.cf.high_level_commander.takeoff(0.5, 0.8)
+        scf.cf.supervisor.send_emergency_stop_watchdog()  # armed once, never refreshed: fires after 1 s
+        time.sleep(0.7)
+        assert not sims.is_locked(0)
+        assert _wait(lambda: sims.is_locked(0), 0.6)
+
+
+def test_extpos_tightens_the_position_estimate(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        truth = sims.truth(0).position
+
+        def spread(n: int, extpos: bool) -> float:
+            # A fresh LogConfig per SyncLogger: cflib gives a re-added config a new block id but keeps it
+            # marked as added, so it would ask the firmware to start a block it never created (ENOENT).
+            config = LogConfig("pos", 10)
+            for name in ("stateEstimate.x", "stateEstimate.y"):
+                config.add_variable(name, "float")
+            errors = []
+            with SyncLogger(scf, config) as logger:
+                for _, data, _ in logger:
+                    if extpos:
+                        scf.cf.loc.send_extpos(truth)
+                    errors.append((data["stateEstimate.x"] - truth[0], data["stateEstimate.y"] - truth[1]))
+                    if len(errors) >= n:
+                        return float(np.sqrt(np.mean(np.square(errors))))
+
+        lps = spread(150, extpos=False)
+        mocap = spread(150, extpos=True)
+        assert 0.005 < lps < 0.1 and mocap < 0.01
+        # The estimate follows the external positions, not the simulator's truth.
+        offset = (truth[0] + 0.3, truth[1] - 0.2, truth[2])
+        for _ in range(5):
+            scf.cf.loc.send_extpos(offset)
+            time.sleep(0.02)
+        est = _first_log(scf, ["stateEstimate.x", "stateEstimate.y"])
+        assert est["stateEstimate.x"] == pytest.approx(offset[0], abs=0.02)
+        assert est["stateEstimate.y"] == pytest.approx(offset[1], abs=0.02)
+
+
+@pytest.mark.parametrize("sims", [3], indirect=True)
+def test_cflib_swarm_of_three_resets_takes_off_and_lands(sims, tmp_path):
+    factory = CachedCfFactory(rw_cache=str(tmp_path))
+    with Swarm(sims.uris, factory=factory) as swarm:
+        swarm.reset_estimators()  # kalman.resetEstimation + waits for kalman.varP* to settle
+        positions = swarm.get_estimated_positions()
+        assert set(positions) == set(sims.uris)
+
+        def takeoff(scf):
+            scf.cf.high_level_commander.takeoff(0.3, 0.8)
+
+        def land(scf):
+            scf.cf.high_level_commander.land(0.0, 0.8)
+
+        swarm.parallel_safe(takeoff)
+        time.sleep(1.0)
+        assert all(sims.truth(i).position[2] == pytest.approx(0.3, abs=0.03) for i in range(3))
+        swarm.parallel_safe(land)
+        assert _wait(lambda: all(sims.truth(i).supervisor == "ready" for i in range(3)), 1.8)
+        assert all(sims.truth(i).position[2] == 0.0 for i in range(3))
+
+
+def test_swarm_gs_sim_command_serves_cflib():
+    base = free_base_port(2)
+    proc = subprocess.Popen([sys.executable, "-m", "groundstation.cli", "sim", "--drones", "2", "--base-port",
+                             str(base), "--duration", "20"], stdout=subprocess.PIPE, text=True)
+    try:
+        lines = [proc.stdout.readline() for _ in range(3)]
+        assert f"udp://127.0.0.1:{base + 1}" in lines[2]
+        with SyncCrazyflie(f"udp://127.0.0.1:{base + 1}", cf=Crazyflie()) as scf:
+            assert scf.cf.platform.get_protocol_version() == crtp.PROTOCOL_VERSION
+    finally:
+        proc.terminate()
+        assert proc.wait(timeout=5) == 0
+
+
+# ---- the pure parts ------------------------------------------------------------------------------
+
+def test_noise_is_deterministic_under_a_seed():
+    def run(seed):
+        batch = QuadBatch(2, QuadParams(), np.zeros((2, 3)), seed)
+        for _ in range(50):
+            batch.step(0.01, np.zeros((2, 3)), np.zeros(2), np.zeros(2, dtype=bool))
+        return batch.estimated_position(1, False)
+
+    assert np.array_equal(run(3), run(3)) and not np.array_equal(run(3), run(4))
+
+
+def test_flight_model_limits_speed_and_rests_on_the_ground():
+    params = QuadParams()
+    batch = QuadBatch(1, params, np.array([[0.0, 0.0, 1.0]]), 0)
+    on = np.ones(1, dtype=bool)
+    for _ in range(300):
+        batch.step(0.01, np.array([[10.0, 0.0, 0.0]]), np.zeros(1), on)
+    assert np.linalg.norm(batch.vel[0, :2]) == pytest.approx(params.max_speed_xy)
+    for _ in range(300):
+        batch.step(0.01, np.zeros((1, 3)), np.zeros(1), ~on)  # motors off: it falls and stops on the floor
+    assert batch.pos[0, 2] == 0.0 and np.all(batch.vel[0] == 0.0)
+    assert batch.charge_as[0] < params.battery_capacity_as
+
+
+def test_firmware_watchdog_timeline_without_sockets():
+    fw = Firmware(QuadParams(), now=0.0)
+    pos, vel = np.array([0.0, 0.0, 0.5]), np.zeros(3)
+    fw.setpoint(0.0, Mode.POSITION, (0.0, 0.0, 0.5, 0.0))
+    fw.control(0.49, pos, vel, 0.0)
+    assert fw.state is SupervisorState.FLYING
+    fw.control(0.51, pos, vel, 0.0)
+    assert fw.state is SupervisorState.LEVEL_OUT and fw.motors_on
+    fw.control(2.01, pos, vel, 0.0)
+    assert fw.state is SupervisorState.LOCKED and not fw.motors_on
+    assert fw.arm(True) == (False, False)
