@@ -59,3 +59,44 @@ def write_models(out: Path, spec: SwarmSpec | None = None, seed: int = 0, hidden
                 "config": {"note": "random test actors (tests/flight_fixtures.py)"}, "evaluation": None}
     (out / "manifest.json").write_text(json.dumps(manifest, indent=2))
     return out
+
+
+# ---- simulated fleets -----------------------------------------------------------------------------
+
+def small_spec() -> SwarmSpec:
+    """2 pursuers, 2 scouts, 1 evader: the smallest team with every role, for quick flights."""
+    return SwarmSpec.from_dict({"team": {"n_pursuers": 2, "n_scouts": 2, "n_evaders": 1}})
+
+
+def quick_flight(**overrides):
+    """Flight settings for short test flights (low, quick takeoff and landing)."""
+    from groundstation.flight import FlightConfig
+    base = dict(height=0.5, takeoff_duration=1.0, takeoff_stagger=0.05, land_speed=0.5)
+    base.update(overrides)
+    return FlightConfig(**base)
+
+
+def open_sim_links(uris: list[str], period_ms: int = 20) -> list:
+    """CflibLinks to simulated drones, opened in parallel."""
+    import concurrent.futures
+    import tempfile
+
+    from groundstation.link import open_link
+    cache = tempfile.mkdtemp(prefix="swarm-gs-test-toc-")
+    with concurrent.futures.ThreadPoolExecutor(len(uris)) as ex:
+        return list(ex.map(lambda u: open_link(u, period_ms=period_ms, rw_cache=cache), uris))
+
+
+def wait_until(predicate, timeout: float, period: float = 0.01) -> bool:
+    import time
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period)
+    return bool(predicate())
+
+
+def on_ground(truth, z: float = 0.05) -> bool:
+    """A simulated drone's ground truth says it is down with its motors off."""
+    return truth.position[2] <= z and not truth.motors_on
