@@ -219,7 +219,7 @@ class Agent:
         self.velocity = np.zeros(2)
         self._safe = np.zeros(2)
         self.max_speed = spec.role(self.role).max_speed
-        self._epoch = None
+        self._epoch = 0  # the buffers start clean for episode 0
         self._ready = self._have_state = False
         self._t_state_read = 0.0
         self._thread: threading.Thread | None = None

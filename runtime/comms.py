@@ -426,12 +426,11 @@ class Radio:
         return ready.size
 
     def clear(self, epoch: int) -> None:
-        """Forget messages in flight and start ``epoch`` (a new episode or mission)."""
+        """Forget messages in flight (already decoded) and start ``epoch`` (a new episode or mission); messages
+        still on the transport are checked against the new epoch when polled."""
         self.epoch = int(epoch)
         self._due[:] = np.inf
         self._free = list(range(self.config.queue - 1, -1, -1))
-        while self.transport.recv() is not None:
-            pass
 
     def close(self) -> None:
         self.transport.close()

@@ -139,9 +139,10 @@ def test_other_team_and_other_epoch_are_ignored():
     table = Neighbours(SPEC.n_agents)
     assert evader.poll(0.0, np.zeros(2), table) == 0 and evader.stats.ignored_other_team == 1
     scout.clear(epoch=3)
-    assert scout.poll(0.0, np.zeros(2), table) == 0 and scout.stats.dropped_epoch == 0  # clear drains
+    assert scout.poll(0.0, np.zeros(2), table) == 0 and scout.stats.dropped_epoch == 1
+    pursuer.clear(epoch=3)
     pursuer.broadcast(0.1, 0.1, np.zeros(2), np.zeros(2))
-    assert scout.poll(0.1, np.zeros(2), table) == 0 and scout.stats.dropped_epoch == 1
+    assert scout.poll(0.1, np.zeros(2), table) == 1
 
 
 def test_bad_comm_config_names_the_field():
