@@ -5,7 +5,7 @@ cflib (``udp://`` URIs, ``CflibLink``); 10 form the pursuer team (pursuer and sc
 evader actors. The arena's three obstacles are drawn from the spec with the seed (``runtime.world``) and
 become keep-out circles of the fence (the simulator has no physical obstacles, so the fence is what keeps
 drones out of them). Preflight, role assignment, staggered takeoff, the mission flown by the exported actors
-(``PolicyPilot``), landing; then the paper's metrics (``runtime.metrics``, one episode per
+(``mission.AgentPilot``: one ``runtime.agent.Agent`` per actor), landing; then the paper's metrics (``runtime.metrics``, one episode per
 ``spec.timing.episode_steps`` control periods), link statistics, a JSON-lines flight log and a picture.
 
 Failure injection: ``kill_link = (drone, t)`` makes that simulated drone stop answering ``t`` s into the
@@ -33,7 +33,7 @@ import numpy as np
 
 from groundstation.flight import DroneStatus, FlightConfig, FlightSession, JsonlRecorder
 from groundstation.link import LinkError, open_link
-from groundstation.mission import PolicyPilot
+from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, KeepOut, in_safe_set
@@ -294,7 +294,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
                 policies = {p.agent_id: p for p in pols}
                 session.assign_roles()
                 session.takeoff()
-                pilot = PolicyPilot(session, spec, policies, obstacles, on_step=metrics)
+                pilot = AgentPilot(session, spec, policies, obstacles, on_step=metrics)
                 session.start_mission()
                 t_mission = time.monotonic()
                 sent0 = [link.stats() for link in links]
@@ -339,7 +339,7 @@ def _wait_on_ground(sims: SimSwarm, timeout: float) -> None:
         time.sleep(0.05)
 
 
-def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: EpisodeMetrics, pilot: PolicyPilot,
+def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: EpisodeMetrics, pilot: AgentPilot,
              ids, sent0, sent1, t_mission, t_end, t_start, t_connected, kill, kill_at, relay) -> dict[str, Any]:
     truth = [sims.truth(i) for i in range(sims.n)]
     landed = sum(1 for tr in truth if tr.position[2] <= LANDED_Z and not tr.motors_on)
@@ -371,8 +371,7 @@ def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: Episod
         "connect_s": round(t_connected - t_start, 2),
         "wall_s": round(time.monotonic() - t_start, 2),
         "control_periods": pilot.ticks,
-        "control_overruns": pilot.overruns,
-        "control_step_p99_ms": float(np.percentile(np.array(pilot.step_times) * 1e3, 99)) if pilot.step_times else None,
+        "agents": pilot.stats(),
         "final_status": {d: s.value for d, s in session.statuses().items()},
         "final_roles": session.assignment.by_drone,
         "role_changes": [c.describe() for c in session.role_changes],
@@ -443,9 +442,11 @@ def format_summary(res: dict[str, Any]) -> str:
     """The printed report of a demo run."""
     f = lambda v, d=3: "-" if v is None else (f"{v:.{d}f}" if isinstance(v, float) else str(v))  # noqa: E731
     links = res["links"]
+    ag = res["agents"]
     lines = [
-        f"mission {res['mission_s']} s, {res['episodes']} episode(s), {res['control_periods']} control periods "
-        f"({res['control_overruns']} overruns, p99 step {f(res['control_step_p99_ms'], 2)} ms)",
+        f"mission {res['mission_s']} s, {res['episodes']} episode(s), {res['control_periods']} control periods; "
+        f"agents: {ag['actions']} actions, {ag['deadline_misses']} deadline misses, {ag['faults']} faults, tick to "
+        f"command p50 {f(ag['tick_to_command_p50_ms'], 2)} ms p99 {f(ag['tick_to_command_p99_ms'], 2)} ms",
         f"distance to targets  min {f(res['mean_min_dist'])}  mean {f(res['mean_avg_dist'])}  "
         f"max {f(res['mean_max_dist'])} m",
         f"tracking rate {f(res['tracking_rate'])}   coverage {f(res['coverage'])}   "

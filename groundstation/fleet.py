@@ -21,7 +21,7 @@ import numpy as np
 
 from groundstation.flight import FlightConfig, FlightSession, JsonlRecorder
 from groundstation.link import FlightState, Link, LinkError, open_link
-from groundstation.mission import PolicyPilot
+from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, check_position
@@ -166,7 +166,7 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
             echo(f"roles: {session.assignment.by_drone}")
             session.takeoff()
             echo(f"flying: {', '.join(session.flying())}")
-            with PolicyPilot(session, spec, {p.agent_id: p for p in pols}, obstacles):
+            with AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles):
                 session.start_mission()
                 end = time.monotonic() + duration
                 while time.monotonic() < end and session.flying() and not stop.is_set():

@@ -308,6 +308,10 @@ class FlightSession:
     def actor_of(self, drone_id: str) -> str | None:
         return self.assignment.by_drone.get(drone_id)
 
+    def is_flying(self, drone_id: str) -> bool:
+        """In the mission: flying with a valid position (not taking off, holding, landing or lost)."""
+        return self.drones[drone_id].status is DroneStatus.FLYING
+
     def flying(self) -> list[str]:
         return [d for d, x in self.drones.items() if x.status in AIRBORNE]
 

@@ -1,7 +1,7 @@
 """Per-drone failsafes in flight, against simulated Crazyflies driven through unmodified cflib.
 
-One flight of six drones (2 pursuers, 2 scouts, 1 evader and one spare, the actors flown by ``PolicyPilot``)
-is flown once for the module; 1.2 s into the mission four things go wrong at once, each to a different
+One flight of six drones (2 pursuers, 2 scouts, 1 evader and one spare; the actors run in
+``runtime.agent.Agent`` threads through ``AgentPilot``) is flown once for the module; 1.2 s into the mission four things go wrong at once, each to a different
 drone: its link is cut in the simulator, its battery is drained, its position source stalls (the tracker is
 detached from its link, which keeps delivering), and its actor's model starts answering NaN. The tests then
 check how each was detected and handled, that roles were repaired, and that the two healthy drones flew on.
@@ -18,7 +18,7 @@ pytest.importorskip("cflib")
 from flight_fixtures import on_ground, open_sim_links, quick_flight, small_spec, wait_until, write_models  # noqa: E402
 from groundstation.demo import draw_obstacles, start_positions  # noqa: E402
 from groundstation.flight import DroneStatus, FlightSession  # noqa: E402
-from groundstation.mission import PolicyPilot  # noqa: E402
+from groundstation.mission import AgentPilot  # noqa: E402
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM  # noqa: E402
 from groundstation.safety import FenceConfig  # noqa: E402
 from groundstation.sim.swarm import SimSwarm, free_base_port  # noqa: E402
@@ -53,7 +53,7 @@ def flight(tmp_path_factory):
                 first = session.assign_roles()
                 session.takeoff()
                 out["flying_after_takeoff"] = session.flying()
-                pilot = PolicyPilot(session, spec, {p.agent_id: p for p in pols}, obstacles)
+                pilot = AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles)
                 session.start_mission()
                 with pilot:
                     time.sleep(FAIL_AT)
@@ -71,7 +71,7 @@ def flight(tmp_path_factory):
                     sims.model.charge_as[ids.index(drained)] = 0.2 * sims.model.params.battery_capacity_as
                     session.tracker.detach(stale)
                     out["stale_at"] = time.monotonic()
-                    pilot.policies[faulty_actor] = OnnxPolicy(nan_models / f"{faulty_actor}.onnx", spec=spec)
+                    pilot.set_policy(faulty_actor, OnnxPolicy(nan_models / f"{faulty_actor}.onnx", spec=spec))
                     time.sleep(2.5)
                     out["statuses_in_flight"] = session.statuses()
                     out["roles_in_flight"] = dict(session.assignment.by_drone)
