@@ -96,9 +96,9 @@ def test_bad_arguments_exit_2_with_one_clear_line(capsys, monkeypatch, args, nee
     assert needle in err and "Traceback" not in err
 
 
-def test_bad_config_value_names_the_field_in_a_subprocess(tmp_path):
+def test_bad_config_value_names_the_field(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "bad"\n[spec.team]\nn_pursuers = -2\n')
-    r = swarm_train("evaluate", "--config", str(bad), "--episodes", "1", "--no-progress")
-    assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert "spec.team.n_pursuers" in r.stderr and r.stderr.startswith("swarm-train evaluate: error:")
+    rc, _, err = in_process(capsys, "evaluate", "--config", str(bad), "--episodes", "1", "--no-progress")
+    assert rc == 2 and "Traceback" not in err
+    assert "spec.team.n_pursuers" in err and err.startswith("swarm-train evaluate: error:")
