@@ -176,10 +176,21 @@ class MavlinkLink(Link):
     """
 
     def __init__(self, uri: str, *, connect_timeout: float = 10.0, heartbeat_period: float = 0.25,
-                 telemetry_rate: float = 50.0, link_loss_timeout: float = 0.25, ack_timeout: float = 1.0,
-                 retries: int = 3, source_system: int = 255, source_component: int = 190) -> None:
+                 telemetry_rate: float = 50.0, period_ms: int | None = None, link_loss_timeout: float = 0.25,
+                 ack_timeout: float = 1.0, retries: int = 3, source_system: int = 255,
+                 source_component: int = 190) -> None:
+        """``period_ms``, when given, sets the telemetry period like ``CflibLink(period_ms=...)`` and overrides
+        ``telemetry_rate`` [Hz]."""
         super().__init__(uri)
         self.connection = parse_uri(uri)
+        if period_ms is not None:
+            if not 1 <= period_ms <= 10_000:
+                raise LinkError(uri, f"period_ms must be in 1..10000, got {period_ms}",
+                                "pass the telemetry period in milliseconds, e.g. period_ms=20")
+            telemetry_rate = 1000.0 / period_ms
+        if not telemetry_rate > 0:
+            raise LinkError(uri, f"telemetry_rate must be positive, got {telemetry_rate}",
+                            "pass the telemetry rate in Hz, e.g. telemetry_rate=50")
         self.heartbeat_period = heartbeat_period
         self.telemetry_rate = telemetry_rate
         self.link_loss_timeout = link_loss_timeout

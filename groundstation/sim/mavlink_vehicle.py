@@ -163,6 +163,8 @@ class MavlinkVehicle:
         self._due: dict[int, float] = {k: 0.0 for k in self._intervals}
         self._rx: dict[str, Any] | None = None  # fence upload in progress
         self._t_boot = clock()
+        self.link_alive = True
+        """False after ``kill_link()``: the vehicle neither hears nor sends (a radio out of range)."""
         self._conn: Any = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -194,6 +196,16 @@ class MavlinkVehicle:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    def kill_link(self) -> None:
+        """Go silent in both directions (a radio out of range); the vehicle flies on by itself and, missing
+        the ground station's heartbeats, lands after ``gcs_timeout``."""
+        with self.lock:
+            self.link_alive = False
+
+    def restore_link(self) -> None:
+        with self.lock:
+            self.link_alive = True
 
     @property
     def local_port(self) -> int:
@@ -235,6 +247,8 @@ class MavlinkVehicle:
                 if msg is None:
                     break
                 with self.lock:
+                    if not self.link_alive:
+                        continue
                     try:
                         self._handle(msg)
                     except Exception:  # a malformed message must not stop the vehicle
@@ -245,8 +259,9 @@ class MavlinkVehicle:
             with self.lock:
                 if dt > 0:
                     self.step(dt, now)
-                self._send_due(now)
-                self._mission_retry(now)
+                if self.link_alive:
+                    self._send_due(now)
+                    self._mission_retry(now)
             wait = period - (self.clock() - now)
             if wait > 0:
                 try:

@@ -1,0 +1,195 @@
+"""MavlinkLink (pymavlink) against the simulated MAVLink vehicle over UDP loopback: both sides are real
+pymavlink peers; nothing is mocked."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from groundstation.link import FlightState, LinkError, open_link, scheme_of  # noqa: E402
+from groundstation.mavlink_link import (MavlinkLink, enu_to_ned, fence_items, ned_to_enu, parse_uri,  # noqa: E402
+                                        yaw_enu_to_ned, yaw_ned_to_enu)
+from groundstation.safety import FenceConfig, KeepOut  # noqa: E402
+from groundstation.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig, VehicleMode  # noqa: E402
+from groundstation.sim.swarm import free_base_port  # noqa: E402
+
+START = (0.5, -0.3, 0.0)
+
+
+def _wait(predicate, timeout: float, period: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period)
+    return predicate()
+
+
+def _stream(send, seconds: float, rate_hz: float = 50.0) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        send()
+        time.sleep(1.0 / rate_hz)
+
+
+@pytest.fixture
+def pair():
+    """(vehicle, link): the vehicle sends to the port the link listens on (udpout -> udpin)."""
+    port = free_base_port(1)
+    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", VehicleConfig(), start=START, seed=3) as vehicle:
+        link = open_link(f"mavlink:udpin:127.0.0.1:{port}", connect_timeout=5.0)
+        try:
+            yield vehicle, link
+        finally:
+            link.close()
+
+
+# ---- URIs and frames ------------------------------------------------------------------------------
+
+def test_uri_form_is_its_own_scheme_and_malformed_ones_are_named():
+    assert scheme_of("mavlink:udpin:127.0.0.1:14550") == "mavlink"
+    assert scheme_of("udp://127.0.0.1:19850") == "udp"  # stays cflib's
+    assert parse_uri("mavlink:udpin:127.0.0.1:14550") == "udpin:127.0.0.1:14550"
+    assert parse_uri("mavlink:/dev/ttyACM0,57600") == "/dev/ttyACM0,57600"
+    for bad, needle in (("mavlink:", "missing"), ("mavlink://127.0.0.1:14550", "no '//'"),
+                        ("mavlink:udpin:14550", "HOST:PORT"), ("udp://1.2.3.4:5", "not a MAVLink URI")):
+        with pytest.raises(LinkError, match=needle):
+            parse_uri(bad)
+    with pytest.raises(LinkError, match="period_ms"):
+        MavlinkLink("mavlink:udpin:127.0.0.1:1", period_ms=0)
+
+
+def test_frames_round_trip_and_match_the_conventions():
+    rng = np.random.default_rng(0)
+    for v in rng.normal(size=(50, 3)):
+        assert np.allclose(ned_to_enu(*enu_to_ned(*v)), v)
+    assert enu_to_ned(1.0, 2.0, 3.0) == (2.0, 1.0, -3.0)  # east, north, up -> north, east, down
+    assert yaw_enu_to_ned(0.0) == pytest.approx(math.pi / 2)  # facing east
+    assert yaw_enu_to_ned(math.pi / 2) == pytest.approx(0.0)  # facing north
+    for yaw in rng.uniform(-math.pi, math.pi, 20):
+        assert math.cos(yaw_ned_to_enu(yaw_enu_to_ned(yaw)) - yaw) == pytest.approx(1.0)
+
+
+def test_no_vehicle_is_a_named_error_within_the_timeout():
+    port = free_base_port(1)
+    t0 = time.monotonic()
+    with pytest.raises(LinkError, match="no vehicle heartbeat"):
+        MavlinkLink(f"mavlink:udpin:127.0.0.1:{port}", connect_timeout=0.3)
+    assert time.monotonic() - t0 < 1.5
+
+
+# ---- the vehicle through the link -----------------------------------------------------------------
+
+def test_heartbeat_and_local_position_telemetry(pair):
+    vehicle, link = pair
+    assert link.target_system == 1 and not link.armed
+    t0 = link.telemetry()
+    time.sleep(0.5)
+    t1 = link.wait_telemetry(1.0, lambda s: s.battery > 0)
+    assert np.allclose(t1.position, START, atol=0.15)  # NED on the wire, ENU here; LPS-like noise
+    assert abs(t1.velocity[2]) < 0.1 and 3.9 < t1.battery <= 4.2
+    assert t1.flight_state is FlightState.DISARMED
+    assert t1.vehicle_time_ms > t0.vehicle_time_ms and t1.t > t0.t
+    rate = (link.stats().telemetry_received - 1) / (t1.t - link._opened_at)
+    assert 30.0 < rate < 60.0  # the 50 Hz stream asked for with SET_MESSAGE_INTERVAL
+    assert t1.link_quality > 0.8
+    assert vehicle._gcs_seen  # the link's own heartbeats reach the vehicle
+
+
+def test_arm_takeoff_velocity_and_position_setpoints_then_land(pair):
+    vehicle, link = pair
+    _stream(lambda: link.send_velocity(0.5, 0.0, 0.0), 0.1)
+    assert vehicle.ignored_setpoints > 0 and vehicle.mode is VehicleMode.DISARMED  # not in the air: ignored
+    link.takeoff(0.6, 0.8)
+    assert vehicle.armed
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    assert vehicle.position[2] == pytest.approx(0.6, abs=0.06)
+    assert link.wait_telemetry(0.5).flight_state is FlightState.FLYING
+    _stream(lambda: link.send_velocity(0.4, -0.2, 0.0), 0.5)
+    assert np.allclose(vehicle.velocity[:2], (0.4, -0.2), atol=0.08)  # east and north survive the NED trip
+    here = vehicle.position
+    target = (here[0] + 0.2, here[1] + 0.2, 0.75)
+    _stream(lambda: link.send_position(*target), 1.1)
+    assert np.allclose(vehicle.position, target, atol=0.05)
+    link.land(0.8)
+    assert _wait(lambda: vehicle.mode is VehicleMode.DISARMED, 1.8)
+    assert _wait(lambda: vehicle.position[2] == 0.0, 0.3)  # disarmed 2 cm up, then it rests on the floor
+    assert link.wait_telemetry(1.0, lambda s: s.flight_state is FlightState.DISARMED)
+
+
+def test_velocity_setpoints_that_stop_turn_into_a_hold(pair):
+    vehicle, link = pair
+    link.takeoff(0.4, 0.6)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    _stream(lambda: link.send_velocity(0.0, 0.5, 0.0), 0.4)
+    assert vehicle.mode is VehicleMode.VELOCITY
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 0.7)  # setpoint_timeout 0.5 s
+    assert np.linalg.norm(vehicle.velocity) < 0.5
+    link.land(0.5)
+
+
+def test_fence_upload_and_the_vehicle_lands_itself_when_it_leaves_it(pair):
+    vehicle, link = pair
+    fence = FenceConfig(box=(-1.0, 1.5, -1.0, 1.0), z_min=0.2, z_max=1.2, margin=0.2,
+                        keep_out=(KeepOut(1.0, 0.5, 0.2),))
+    assert link.upload_fence(fence) == len(fence_items(fence)) == 5
+    vf = vehicle.fence
+    assert vf is not None and vf.z_max == pytest.approx(1.2, rel=1e-6)  # float32 on the wire
+    assert len(vf.circles) == 1 and vf.circles[0] == pytest.approx((1.0, 0.5, 0.2), rel=1e-6)
+    assert np.allclose(np.sort(vf.polygon, axis=0), np.sort(fence.polygon, axis=0))
+    assert vf.contains(np.array([0.0, 0.0, 1.0])) and not vf.contains(np.array([1.0, 0.55, 1.0]))
+    assert not vf.contains(np.array([0.0, 0.0, 1.3])) and not vf.contains(np.array([2.0, 0.0, 1.0]))
+    link.takeoff(0.4, 0.5)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    # The vehicle's fence is the backstop behind the ground station's geofence: sent straight through the
+    # raw link, a target past the ceiling makes the vehicle land on its own.
+    _stream(lambda: link.send_position(START[0], START[1], 1.6), 1.2)
+    assert vehicle.fence_breaches >= 1 and vehicle.position[2] < 1.4  # breach at 1.2 m + stopping distance
+    assert vehicle.mode is VehicleMode.LAND
+    assert _wait(lambda: vehicle.velocity[2] < -0.3, 0.5)  # descending; setpoints no longer obeyed
+    link.clear_fence()
+    assert vehicle.fence is None
+
+
+def test_vehicle_lands_when_the_ground_station_heartbeats_stop(pair):
+    vehicle, link = pair
+    link.takeoff(0.3, 0.4)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    t_close = time.monotonic()
+    link.close()  # no more GCS heartbeats
+    time.sleep(0.6)
+    assert vehicle.mode is VehicleMode.HOLD  # within gcs_timeout (1 s) it flies on
+    assert _wait(lambda: vehicle.mode is VehicleMode.LAND, 1.0)
+    assert 0.9 < time.monotonic() - t_close < 1.5
+    assert _wait(lambda: vehicle.mode is VehicleMode.DISARMED, 2.0)
+    assert _wait(lambda: vehicle.position[2] == 0.0, 0.3)
+    assert vehicle.failsafe_landings == 1
+
+
+def test_emergency_stop_terminates_and_locks_until_reboot(pair):
+    vehicle, link = pair
+    link.takeoff(0.4, 0.5)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    link.emergency_stop()
+    assert _wait(lambda: vehicle.mode is VehicleMode.TERMINATED, 0.3)
+    assert _wait(lambda: vehicle.position[2] == 0.0, 1.0)  # motors off: it falls
+    assert link.wait_telemetry(1.0, lambda s: s.flight_state is FlightState.LOCKED)
+    with pytest.raises(LinkError, match="arming refused"):
+        link.takeoff(0.5, 1.0)
+    result = link.command(link._mav.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
+    assert result == link._mav.MAV_RESULT_ACCEPTED
+    assert link.wait_telemetry(1.0, lambda s: s.flight_state is FlightState.DISARMED)
+
+
+def test_disarm_in_the_air_is_refused_unless_forced(pair):
+    vehicle, link = pair
+    link.takeoff(0.4, 0.6)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    with pytest.raises(LinkError, match="disarming refused"):
+        link.disarm()
+    link.disarm(force=True)
+    assert _wait(lambda: vehicle.position[2] == 0.0, 1.0)
