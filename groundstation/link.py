@@ -8,7 +8,12 @@
 ``usb://0``                            ``CflibLink``: a Crazyflie on USB
 ``mavlink:udpin:127.0.0.1:14550``      ``MavlinkLink`` (``groundstation.mavlink_link``): the text after
                                        ``mavlink:`` is a pymavlink connection string, so ``udp://`` stays cflib's
+``mavlink:/dev/ttyACM0,57600``         ``MavlinkLink`` over a serial port (baud after the comma)
 =====================================  =============================================================
+
+Loss of a silent peer: cflib's radio and UDP drivers do not report one, so every link judges it from
+telemetry silence: ``link.telemetry_age()`` [s] and ``link.link_lost`` (age > ``link_loss_timeout``, 0.25 s
+by default; pass ``link_loss_timeout=`` to ``open_link``). Each ``Telemetry`` carries its arrival time ``t``.
 
 A ``Link`` is the raw transport: it sends what it is told. Every setpoint that leaves the ground station
 must first pass the geofence (``groundstation.safety``); the flight-operations layer does that before it

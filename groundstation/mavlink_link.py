@@ -7,8 +7,11 @@ URI: ``mavlink:<pymavlink connection string>``. Everything after ``mavlink:`` go
 ``mavlink:udpin:127.0.0.1:14550``           listen on UDP 14550 (where PX4 SITL and most autopilots send)
 ``mavlink:udpout:192.168.4.1:14555``        send to a vehicle that listens
 ``mavlink:tcp:127.0.0.1:5760``              TCP client (ArduPilot SITL)
-``mavlink:/dev/ttyACM0``                    serial (a telemetry radio or USB)
+``mavlink:/dev/ttyACM0,57600``              serial (a telemetry radio or USB) at 57600 baud (default 115200)
 ==========================================  ======================================================
+
+Not ``udp://``: that is cflib's (``CflibLink``), so a Crazyflie simulator and a MAVLink vehicle can never be
+mistaken for each other. The serial baud rate follows a comma, because pymavlink reads ``HOST:PORT`` as UDP.
 
 Protocol: MAVLink 2, common dialect. The link sends a GCS ``HEARTBEAT`` every ``heartbeat_period`` (0.25 s)
 from its own thread; vehicles land by themselves when these stop (``close()`` therefore ends in a failsafe
@@ -112,17 +115,31 @@ def mavlink_module() -> Any:
 
 def open_mavlink(connection: str, source_system: int, source_component: int) -> Any:
     """A ``mavutil`` connection for ``connection`` that speaks MAVLink 2 with the common dialect.
+    A serial device may carry its baud rate after a comma (``/dev/ttyACM0,57600``; default 115200).
 
     mavutil picks its dialect and wire version from the process-wide ``MAVLINK20`` environment variable; this
     sets the parser of this one connection instead, so other pymavlink users in the process are unaffected."""
     from pymavlink import mavutil
     mav = mavlink_module()
-    conn = mavutil.mavlink_connection(connection, source_system=source_system, source_component=source_component)
+    device, baud = split_baud(connection)
+    conn = mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
+                                      source_component=source_component)
     conn.mav = mav.MAVLink(conn, srcSystem=source_system, srcComponent=source_component)
     conn.mav.robust_parsing = True
     conn.WIRE_PROTOCOL_VERSION = "2.0"
     conn.first_byte = False  # no auto-switching of the global dialect on the first byte
     return conn
+
+
+_NETWORK_KINDS = ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin")
+
+
+def split_baud(connection: str) -> tuple[str, int]:
+    """``/dev/ttyACM0,57600`` -> (``/dev/ttyACM0``, 57600); anything without a baud -> (it, 115200)."""
+    device, sep, baud = connection.rpartition(",")
+    if sep and device and baud.isdigit() and connection.split(":", 1)[0] not in _NETWORK_KINDS:
+        return device, int(baud)
+    return connection, 115200
 
 
 def parse_uri(uri: str) -> str:
@@ -136,8 +153,12 @@ def parse_uri(uri: str) -> str:
                         "write mavlink:udpin:HOST:PORT, mavlink:udpout:HOST:PORT, mavlink:tcp:HOST:PORT or "
                         "mavlink:/dev/ttyUSB0 (no '//' after 'mavlink:')")
     kind = rest.split(":", 1)[0]
-    if kind in ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin") and rest.count(":") != 2:
+    if kind in _NETWORK_KINDS and rest.count(":") != 2:
         raise LinkError(uri, f"{kind} needs HOST:PORT", f"write mavlink:{kind}:127.0.0.1:14550")
+    if kind not in _NETWORK_KINDS and (rest.startswith("/") or rest.upper().startswith("COM")) and ":" in rest:
+        # pymavlink would take DEVICE:BAUD for a UDP address
+        raise LinkError(uri, "serial baud rate written after ':'",
+                        f"write it after a comma: mavlink:{rest.replace(':', ',', 1)}")
     return rest
 
 

@@ -12,7 +12,7 @@ pytest.importorskip("pymavlink")
 
 from groundstation.link import FlightState, LinkError, open_link, scheme_of  # noqa: E402
 from groundstation.mavlink_link import (MavlinkLink, enu_to_ned, fence_items, ned_to_enu, parse_uri,  # noqa: E402
-                                        yaw_enu_to_ned, yaw_ned_to_enu)
+                                        split_baud, yaw_enu_to_ned, yaw_ned_to_enu)
 from groundstation.safety import FenceConfig, KeepOut  # noqa: E402
 from groundstation.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig, VehicleMode  # noqa: E402
 from groundstation.sim.swarm import free_base_port  # noqa: E402
@@ -55,6 +55,11 @@ def test_uri_form_is_its_own_scheme_and_malformed_ones_are_named():
     assert scheme_of("udp://127.0.0.1:19850") == "udp"  # stays cflib's
     assert parse_uri("mavlink:udpin:127.0.0.1:14550") == "udpin:127.0.0.1:14550"
     assert parse_uri("mavlink:/dev/ttyACM0,57600") == "/dev/ttyACM0,57600"
+    assert split_baud("/dev/ttyACM0,57600") == ("/dev/ttyACM0", 57600)
+    assert split_baud("/dev/ttyUSB0") == ("/dev/ttyUSB0", 115200)
+    assert split_baud("udpin:127.0.0.1:14550") == ("udpin:127.0.0.1:14550", 115200)
+    with pytest.raises(LinkError, match="after a comma: mavlink:/dev/ttyACM0,57600"):
+        parse_uri("mavlink:/dev/ttyACM0:57600")
     for bad, needle in (("mavlink:", "missing"), ("mavlink://127.0.0.1:14550", "no '//'"),
                         ("mavlink:udpin:14550", "HOST:PORT"), ("udp://1.2.3.4:5", "not a MAVLink URI")):
         with pytest.raises(LinkError, match=needle):
