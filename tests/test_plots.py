@@ -52,6 +52,11 @@ def test_plot_command_bad_config_is_a_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("swarm-train plot: error:") and "does not exist" in err
     assert not (tmp_path / "x.png").exists()
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["plot", "--config", str(ROOT / "configs/role_based.toml"), "--out", str(blocker / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("swarm-train plot: error: cannot write") and "Traceback" not in err
 
 
 def test_recorded_episode_stays_in_the_free_arena(role_based, trace):

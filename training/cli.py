@@ -133,7 +133,10 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def _plot(cfg, policy, seed: int, out: str, title: str) -> None:
     from training.plots import plot_episode, record_episode
-    path = plot_episode(record_episode(cfg, policy, seed), out, title)
+    try:
+        path = plot_episode(record_episode(cfg, policy, seed), out, title)
+    except OSError as exc:
+        raise UsageError(f"cannot write {out!r}: {exc.strerror or exc}") from None
     print(f"wrote {path}")
 
 
