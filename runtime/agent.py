@@ -26,7 +26,8 @@ Timing: ticks at ``rate_hz``, offset by ``phase_s`` (a swarm staggers its agents
 that they do not contend for the CPU at the same instant). ``lead_s`` before each tick the agent reads its
 state, drains its radio, builds the observation and runs the actor once as a warm-up (a model idle for a
 control period costs several times more: its weights and onnxruntime's code have left the caches); at the
-tick it runs the actor on that observation and publishes the command, then broadcasts its own state.
+tick it runs the actor on that observation and publishes the command, then broadcasts its own state (once
+per ``broadcast_period_s``, by default the spec's control period, whatever the control rate).
 ``tick_to_action`` is measured from the scheduled tick to the published command, ``state_to_action`` from
 the state read to the published command (it includes the observation build).
 
@@ -104,6 +105,9 @@ class AgentConfig:
     """Run the actor once during the preparation (warm-up) so that the call at the tick is cache-hot."""
     deadline_s: float | None = None
     """A command published later than this after its tick is a deadline miss [s]; None: one period."""
+    broadcast_period_s: float | None = None
+    """Seconds between two broadcasts of own state and sightings; None: spec.timing.control_period (what
+    training assumed: one message per control period, whatever the control rate)."""
     stale_after_s: float | None = None
     """Partial observability: a teammate is visible while heard within this [s]; None: 5 control periods.
     With full observability the last state heard is always used (ranges do not limit what is seen)."""
@@ -191,6 +195,9 @@ class Agent:
         self.deadline = self.config.deadline_s if self.config.deadline_s is not None else self.period
         self.stale_after = (self.config.stale_after_s if self.config.stale_after_s is not None
                             else 5 * spec.timing.control_period)
+        bp = self.config.broadcast_period_s
+        self.broadcast_period = spec.timing.control_period if bp is None else bp
+        self._next_broadcast = -math.inf
         self.stats = AgentStats(self.config.record)
         n, nt, e = spec.n_agents, spec.team.n_team, spec.team.n_evaders
         self.nt = nt
@@ -314,9 +321,12 @@ class Agent:
         if lat > self.deadline:
             st.deadline_misses += 1
         st.ticks += 1
-        if self._have_state and self.radio is not None:
+        if self._have_state and self.radio is not None and done >= self._next_broadcast:
             p = self.perception
             self.radio.broadcast(done, p.time_s, p.pos, p.vel, self.sightings)
+            # the next one a period on, with half a tick of slack so that it lands on the matching tick
+            self._next_broadcast = max(self._next_broadcast + self.broadcast_period,
+                                       done + self.broadcast_period - 0.5 * self.period)
 
     def tick(self) -> np.ndarray:
         """One synchronous tick (prepare, act, publish, broadcast); returns the published velocity."""

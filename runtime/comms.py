@@ -291,16 +291,8 @@ class Radio:
             raise SpecError(f"comms.max_bytes: {self.config.max_bytes} B cannot hold a message with {e} sightings "
                             f"({message_size(e)} B): raise comms.max_bytes")
         self._out = bytearray(message_size(e))
-        # messages in flight (latency): fixed slots, due = inf marks a free slot
-        q = self.config.queue
-        self._due = np.full(q, np.inf)
-        self._sender = np.zeros(q, dtype=np.int64)
-        self._t_state = np.zeros(q)
-        self._pv = np.zeros((q, 4))
-        self._nsight = np.zeros(q, dtype=np.int64)
-        self._sight = np.zeros((q, e, SIGHTING))
-        self._sight_idx = np.zeros((q, e), dtype=np.int64)
-        self._free = list(range(q - 1, -1, -1))
+        self._pending: list[tuple] = []
+        """Messages in flight (latency): (due, sender, t_state, x, y, vx, vy, sightings), oldest first."""
 
     # ----------------------------------------------------------------------------------------- send
     def broadcast(self, now: float, t_state: float, pos: np.ndarray, vel: np.ndarray,
@@ -334,106 +326,114 @@ class Radio:
         return True
 
     # -------------------------------------------------------------------------------------- receive
-    def _decode(self, data: bytes | memoryview, now: float, my_pos: np.ndarray) -> None:
+    def _decode(self, data: bytes | memoryview, now: float, mx: float, my: float, table: Neighbours,
+                sightings: np.ndarray | None) -> int:
         st = self.stats
         st.received += 1
         size = len(data)
         if size > self.config.max_bytes:
             st.dropped_oversized += 1
-            return
+            return 0
         if size < HEADER.size:
             st.dropped_malformed += 1
-            return
+            return 0
         (magic, version, sender, role, n_s, epoch, _seq, t_tx, t_state,
          x, y, vx, vy) = HEADER.unpack_from(data, 0)
         if (magic != MAGIC or version != WIRE_VERSION or sender >= self.n or sender == self.index
                 or role != self.roles[sender] or n_s > self.n_evaders or size != message_size(n_s)
-                or not math.isfinite(t_tx) or not math.isfinite(t_state)
-                or not math.isfinite(x + y + vx + vy)):
+                or not math.isfinite(t_tx + t_state + x + y + vx + vy)):
             st.dropped_malformed += 1
-            return
+            return 0
         if not self.same_team[sender]:
             st.ignored_other_team += 1
-            return
+            return 0
         if epoch != (self.epoch & 0xFFFF):
             st.dropped_epoch += 1
-            return
-        dx = x - my_pos[0]
-        dy = y - my_pos[1]
+            return 0
+        dx = x - mx
+        dy = y - my
         if dx * dx + dy * dy > self.range2:
             st.dropped_range += 1
-            return
+            return 0
         loss = self.config.loss
         if loss > 0.0 and self.rng.random() < loss:
             st.dropped_loss += 1
-            return
-        if not self._free:
-            st.dropped_queue += 1
-            return
-        k = self._free[-1]
-        off = HEADER.size
-        for j in range(n_s):
-            tgt, sx, sy, svx, svy, ts = SIGHT.unpack_from(data, off)
-            off += SIGHT.size
-            if tgt >= self.n_evaders or not math.isfinite(sx + sy + svx + svy + ts):
-                st.dropped_malformed += 1
-                return
-            self._sight_idx[k, j] = tgt
-            s = self._sight[k, j]
-            s[0], s[1], s[2], s[3], s[4] = sx, sy, svx, svy, ts
-        self._free.pop()
+            return 0
+        sights = ()
+        if n_s:
+            sights = tuple(SIGHT.unpack_from(data, HEADER.size + j * SIGHT.size) for j in range(n_s))
+            for sg in sights:
+                if sg[0] >= self.n_evaders or not math.isfinite(sg[1] + sg[2] + sg[3] + sg[4] + sg[5]):
+                    st.dropped_malformed += 1
+                    return 0
         due = t_tx + self.config.latency_s
         if self.config.jitter_s > 0.0:
             due += self.rng.random() * self.config.jitter_s
-        self._due[k] = due
-        self._sender[k] = sender
-        self._t_state[k] = t_state
-        p = self._pv[k]
-        p[0], p[1], p[2], p[3] = x, y, vx, vy
-        self._nsight[k] = n_s
+        if due <= now:
+            self._deliver(now, sender, t_state, x, y, vx, vy, sights, table, sightings)
+            return 1
+        if len(self._pending) >= self.config.queue:
+            st.dropped_queue += 1
+            return 0
+        self._pending.append((due, sender, t_state, x, y, vx, vy, sights))
+        return 0
+
+    def _deliver(self, now: float, sender: int, t_state: float, x: float, y: float, vx: float, vy: float,
+                 sights: tuple, table: Neighbours, sightings: np.ndarray | None) -> None:
+        if t_state > table.t_state[sender]:
+            table.t_state[sender] = t_state
+            table.t_recv[sender] = now
+            p, v = table.pos[sender], table.vel[sender]
+            p[0] = x
+            p[1] = y
+            v[0] = vx
+            v[1] = vy
+        if sightings is not None:
+            for e, sx, sy, svx, svy, ts in sights:
+                row = sightings[e]
+                if ts > row[4]:
+                    row[0] = sx
+                    row[1] = sy
+                    row[2] = svx
+                    row[3] = svy
+                    row[4] = ts
+        self.stats.delivered += 1
 
     def poll(self, now: float, my_pos: np.ndarray, table: Neighbours,
              sightings: np.ndarray | None = None) -> int:
-        """Receive everything pending, deliver what is due by ``now``; returns messages delivered."""
+        """Receive everything pending, deliver what is due by ``now`` into ``table`` and ``sightings``
+        ``[n_evaders, 5]``; returns messages delivered."""
         tr = self.transport
+        mx, my = float(my_pos[0]), float(my_pos[1])
+        n = 0
         while True:
             data = tr.recv()
             if data is None:
                 break
-            self._decode(data, now, my_pos)
-        due = self._due
-        if not (due <= now).any():
-            return 0
-        ready = np.flatnonzero(due <= now)
-        if ready.size > 1:
-            ready = ready[np.argsort(due[ready], kind="stable")]
-        for k in ready.tolist():
-            snd = int(self._sender[k])
-            if self._t_state[k] > table.t_state[snd]:
-                table.t_state[snd] = self._t_state[k]
-                table.t_recv[snd] = now
-                table.pos[snd] = self._pv[k, :2]
-                table.vel[snd] = self._pv[k, 2:]
-            if sightings is not None:
-                for j in range(int(self._nsight[k])):
-                    s = self._sight[k, j]
-                    e = int(self._sight_idx[k, j])
-                    if s[4] > sightings[e, 4]:
-                        sightings[e] = s
-            due[k] = np.inf
-            self._free.append(k)
-        self.stats.delivered += ready.size
-        return ready.size
+            n += self._decode(data, now, mx, my, table, sightings)
+        pend = self._pending
+        if pend:
+            ready = [m for m in pend if m[0] <= now]
+            if ready:
+                pend[:] = [m for m in pend if m[0] > now]
+                ready.sort(key=_due)
+                for m in ready:
+                    self._deliver(now, m[1], m[2], m[3], m[4], m[5], m[6], m[7], table, sightings)
+                n += len(ready)
+        return n
 
     def clear(self, epoch: int) -> None:
         """Forget messages in flight (already decoded) and start ``epoch`` (a new episode or mission); messages
         still on the transport are checked against the new epoch when polled."""
         self.epoch = int(epoch)
-        self._due[:] = np.inf
-        self._free = list(range(self.config.queue - 1, -1, -1))
+        self._pending.clear()
 
     def close(self) -> None:
         self.transport.close()
+
+
+def _due(message: tuple) -> float:
+    return message[0]
 
 
 def decode_message(data: bytes) -> dict:

@@ -43,14 +43,17 @@ _CTX = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
 class WorldBoard:
     """World state and commands in one float64 block (plain memory, or shared memory by ``name``).
 
-    Layout: ``[version, time_s, episode, stop, pos (2N), vel (2N), obstacle_pos (2K), obstacle_radius (K),
-    cmd (2N)]``. Writers of the snapshot bump ``version`` to odd, write, bump it to even; readers retry while
-    it is odd or changed (a seqlock), so a reader never sees half a step."""
+    Layout: ``[active, stop]``, two snapshot slots ``[seq, time_s, episode, pos (2N), vel (2N), obstacle_pos
+    (2K), obstacle_radius (K)]``, then ``cmd (2N)``. ``publish`` writes the inactive slot (its ``seq`` odd while
+    writing) and then makes it the active one, so a reader is never held up by a writer that the scheduler
+    paused mid-write; a reader retries only if a slot was rewritten while it copied (two publishes within one
+    copy)."""
 
     def __init__(self, spec: SwarmSpec, shared: bool = False, name: str | None = None) -> None:
         n, k = spec.n_agents, spec.arena.n_obstacles
         self.n, self.k = n, k
-        size = 4 + 4 * n + 3 * k + 2 * n
+        self.slot_size = 3 + 4 * n + 3 * k
+        size = 2 + 2 * self.slot_size + 2 * n
         self.shm = None
         if shared or name is not None:
             self.shm = shared_memory.SharedMemory(name=name, create=name is None, size=8 * size)
@@ -61,18 +64,17 @@ class WorldBoard:
                 self.buf[:] = 0.0
         else:
             self.buf = np.zeros(size)
-        b = self.buf
-        o = 4
-        self.pos = b[o:o + 2 * n].reshape(n, 2)
-        o += 2 * n
-        self.vel = b[o:o + 2 * n].reshape(n, 2)
-        o += 2 * n
-        self.obstacle_pos = b[o:o + 2 * k].reshape(k, 2)
-        o += 2 * k
-        self.obstacle_radius = b[o:o + k]
-        o += k
-        self.cmd = b[o:o + 2 * n].reshape(n, 2)
+        self.slots = [self._slot(2 + j * self.slot_size) for j in range(2)]
+        o = 2 + 2 * self.slot_size
+        self.cmd = self.buf[o:o + 2 * n].reshape(n, 2)
         """Normalised actions [-1, 1] per drone (velocity / max_speed), written by the sinks."""
+
+    def _slot(self, o: int) -> dict[str, np.ndarray]:
+        n, k, b = self.n, self.k, self.buf
+        return {"head": b[o:o + 3], "pos": b[o + 3:o + 3 + 2 * n].reshape(n, 2),
+                "vel": b[o + 3 + 2 * n:o + 3 + 4 * n].reshape(n, 2),
+                "obstacle_pos": b[o + 3 + 4 * n:o + 3 + 4 * n + 2 * k].reshape(k, 2),
+                "obstacle_radius": b[o + 3 + 4 * n + 2 * k:o + self.slot_size]}
 
     @property
     def name(self) -> str | None:
@@ -80,30 +82,47 @@ class WorldBoard:
 
     def publish(self, pos: np.ndarray, vel: np.ndarray, obstacle_pos: np.ndarray, obstacle_radius: np.ndarray,
                 time_s: float, episode: int) -> None:
-        b = self.buf
-        b[0] += 1.0
-        self.pos[:] = pos
-        self.vel[:] = vel
-        self.obstacle_pos[:] = obstacle_pos
-        self.obstacle_radius[:] = obstacle_radius
-        b[1] = time_s
-        b[2] = episode
-        b[0] += 1.0
+        j = 1 - int(self.buf[0])
+        s = self.slots[j]
+        head = s["head"]
+        head[0] += 1.0  # odd: being written
+        s["pos"][:] = pos
+        s["vel"][:] = vel
+        s["obstacle_pos"][:] = obstacle_pos
+        s["obstacle_radius"][:] = obstacle_radius
+        head[1] = time_s
+        head[2] = episode
+        head[0] += 1.0
+        self.buf[0] = j
 
-    @property
-    def version(self) -> float:
-        return float(self.buf[0])
+    def read(self, pos: np.ndarray, vel: np.ndarray, obstacle_pos: np.ndarray,
+             obstacle_radius: np.ndarray) -> tuple[float, int] | None:
+        """Copy the newest snapshot into the arrays; (time_s, episode), or None before the first publish."""
+        for _ in range(16):
+            s = self.slots[int(self.buf[0])]
+            head = s["head"]
+            v1 = head[0]
+            if v1 == 0.0:
+                return None
+            pos[:] = s["pos"]
+            vel[:] = s["vel"]
+            obstacle_pos[:] = s["obstacle_pos"]
+            obstacle_radius[:] = s["obstacle_radius"]
+            t, ep = head[1], head[2]
+            if head[0] == v1 and v1 % 2.0 == 0.0:
+                return float(t), int(ep)
+        return None
 
     @property
     def stopped(self) -> bool:
-        return bool(self.buf[3])
+        return bool(self.buf[1])
 
     def request_stop(self) -> None:
-        self.buf[3] = 1.0
+        self.buf[1] = 1.0
 
     def close(self, unlink: bool = False) -> None:
         if self.shm is not None:
-            self.buf = self.pos = self.vel = self.obstacle_pos = self.obstacle_radius = self.cmd = None
+            self.buf = self.cmd = self.slots = None
             self.shm.close()
             if unlink:
                 self.shm.unlink()
@@ -134,24 +153,10 @@ class WorldSource:
         self._d2 = [np.zeros(n) for _ in range(n)]
 
     def __call__(self, index: int, p: Perception) -> bool:
-        b = self.board
-        buf = b.buf
-        for _ in range(100):
-            v1 = buf[0]
-            if v1 % 2.0 == 1.0 or v1 == 0.0:  # being written, or nothing published yet
-                time.sleep(0)
-                continue
-            p.others_pos[:] = b.pos
-            p.others_vel[:] = b.vel
-            p.obstacle_pos[:] = b.obstacle_pos
-            p.obstacle_radius[:] = b.obstacle_radius
-            t, ep = buf[1], buf[2]
-            if buf[0] == v1:
-                break
-        else:
+        got = self.board.read(p.others_pos, p.others_vel, p.obstacle_pos, p.obstacle_radius)
+        if got is None:
             return False
-        p.time_s = float(t)
-        p.episode = int(ep)
+        p.time_s, p.episode = got
         p.pos[:] = p.others_pos[index]
         p.vel[:] = p.others_vel[index]
         if self.full:
