@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from groundstation.flight import DroneStatus, FlightConfig, FlightSession, JsonlRecorder
+from groundstation.flight import FlightConfig, FlightSession, JsonlRecorder, close_links
 from groundstation.link import LinkError, open_link
 from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
@@ -245,8 +245,7 @@ def _open_links(uris: list[str], period_ms: int, link_loss_timeout: float) -> li
             except LinkError as exc:
                 errors.append(str(exc))
     if errors:
-        for link in links:
-            link.close()
+        close_links(links)
         raise DemoError("cannot connect to the simulated drones:\n" + "\n".join(errors))
     return links
 
@@ -317,8 +316,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
                                    t_start, t_connected, kill, result.pop("kill_link_at", None), relay))
             result["obstacles"] = [[round(float(v), 3) for v in o] for o in obstacles]
         finally:
-            for link in links:
-                link.close()
+            close_links(links)
             if relay is not None:
                 relay.close()
             recorder.close()

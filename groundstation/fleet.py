@@ -11,6 +11,7 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import math
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -19,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from groundstation.flight import FlightConfig, FlightSession, JsonlRecorder
+from groundstation.flight import FlightConfig, FlightSession, JsonlRecorder, close_links
 from groundstation.link import FlightState, Link, LinkError, open_link
 from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
@@ -30,6 +31,9 @@ from runtime.spec import SpecError, SwarmSpec, from_mapping, load_toml
 
 log = logging.getLogger(__name__)
 
+TOC_CACHE = Path(tempfile.gettempdir()) / "swarm-gs-cflib-toc"
+"""Where cflib caches the drones' log and parameter tables of contents (by CRC): reconnects skip the download."""
+
 
 @dataclass(frozen=True)
 class DroneEntry:
@@ -39,8 +43,8 @@ class DroneEntry:
     """Name used in logs and role assignment (e.g. "cf1")."""
     uri: str
     """``radio://0/80/2M/E7E7E7E701``, ``udp://127.0.0.1:19850`` or ``mavlink:udpin:...``."""
-    team: str = PURSUER_TEAM
-    """"pursuer" (flies pursuer and scout actors) or "evader"."""
+    team: str
+    """"pursuer" (flies pursuer and scout actors) or "evader"; required."""
 
     def __post_init__(self) -> None:
         if not self.id:
@@ -72,8 +76,6 @@ class FleetConfig:
     """[s]"""
 
     def __post_init__(self) -> None:
-        if not self.drones:
-            raise SpecError("drones: the fleet has no drones: add [[fleet.drones]] tables with id, uri and team")
         ids = [d.id for d in self.drones]
         dup = sorted({i for i in ids if ids.count(i) > 1})
         if dup:
@@ -94,6 +96,9 @@ class FleetConfig:
         if unknown:
             raise SpecError(f"{p}: unknown table [{unknown[0]}]; a fleet file has [fleet] and [flight]")
         fleet = from_mapping(cls, doc.get("fleet", {}), "fleet")
+        if not fleet.drones:
+            raise SpecError(f"{p}: fleet.drones: the fleet has no drones: add [[fleet.drones]] tables with id, uri "
+                            f"and team")
         flight = FlightConfig.from_dict(doc.get("flight", {}))
         base = p.resolve().parent
 
@@ -114,7 +119,7 @@ def open_fleet(fleet: FleetConfig, link_loss_timeout: float = 0.25) -> dict[str,
         opts: dict[str, Any] = {}
         if not d.uri.startswith("mavlink:"):
             opts = {"period_ms": fleet.telemetry_period_ms, "connect_timeout": fleet.connect_timeout,
-                    "link_loss_timeout": link_loss_timeout}
+                    "link_loss_timeout": link_loss_timeout, "rw_cache": str(TOC_CACHE)}
         return open_link(d.uri, **opts)
 
     links: dict[str, Link] = {}
@@ -126,8 +131,7 @@ def open_fleet(fleet: FleetConfig, link_loss_timeout: float = 0.25) -> dict[str,
             except LinkError as exc:
                 errors.append(f"{d.id}: {exc}")
     if errors:
-        for link in links.values():
-            link.close()
+        close_links(links.values())
         raise LinkError(", ".join(d.uri for d in fleet.drones), "some drones did not answer:\n" + "\n".join(errors),
                         "power them, check the radio and the URIs in the fleet file")
     return links
@@ -177,8 +181,7 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
                 "events": [(round(e.t - session._t0, 3), e.drone, e.kind, e.detail) for e in session.events
                            if e.kind != "status"]}
     finally:
-        for link in links.values():
-            link.close()
+        close_links(links.values())
         recorder.close()
 
 
@@ -203,8 +206,7 @@ def land_fleet(fleet: FleetConfig, speed: float = 0.3, timeout: float = 10.0) ->
             time.sleep(0.05)
         return out
     finally:
-        for link in links.values():
-            link.close()
+        close_links(links.values())
 
 
 def fleet_status(fleet: FleetConfig) -> list[dict[str, Any]]:
@@ -230,5 +232,4 @@ def fleet_status(fleet: FleetConfig) -> list[dict[str, Any]]:
             })
         return rows
     finally:
-        for link in links.values():
-            link.close()
+        close_links(links.values())

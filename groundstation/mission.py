@@ -130,6 +130,7 @@ class AgentPilot:
         self._pos = np.zeros((n, 2))
         self._vel = np.zeros((n, 2))
         self._stop = threading.Event()
+        self._start_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._t0 = 0.0
         self.ticks = 0
@@ -138,21 +139,34 @@ class AgentPilot:
     # ---- lifecycle ---------------------------------------------------------------------------------
 
     def start(self) -> "AgentPilot":
-        self._t0 = t0 = time.monotonic() + 0.05
+        self._t0 = time.monotonic() + 0.05
         self._broadcast_vacant(time.monotonic())
-        for a in self.agents:
-            a.start(t0)
+        self._start_assigned(self.session.assignment)
+        self.session.role_listeners.append(self._start_assigned)
         self._thread = threading.Thread(target=self._run, name="AgentPilot", daemon=True)
         self._thread.start()
         return self
 
+    def _start_assigned(self, assignment) -> None:
+        """Start the agent of every actor that has a drone (an actor never flown needs no loop)."""
+        with self._start_lock:
+            if self._stop.is_set():
+                return
+            for agent, actor in zip(self.agents, self.agent_ids):
+                if actor in assignment.by_actor and not agent.running:
+                    agent.start(self._t0)
+
     def stop(self) -> None:
-        self._stop.set()
+        with self._start_lock:
+            self._stop.set()
+        if self._start_assigned in self.session.role_listeners:
+            self.session.role_listeners.remove(self._start_assigned)
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
         for a in self.agents:
-            a.stop()
+            if a.running:
+                a.stop()
 
     def __enter__(self) -> "AgentPilot":
         return self.start()

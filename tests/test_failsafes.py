@@ -17,7 +17,7 @@ pytest.importorskip("cflib")
 
 from flight_fixtures import on_ground, open_sim_links, quick_flight, small_spec, wait_until, write_models  # noqa: E402
 from groundstation.demo import draw_obstacles, start_positions  # noqa: E402
-from groundstation.flight import DroneStatus, FlightSession  # noqa: E402
+from groundstation.flight import DroneStatus, close_links, FlightSession  # noqa: E402
 from groundstation.mission import AgentPilot  # noqa: E402
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM  # noqa: E402
 from groundstation.safety import FenceConfig  # noqa: E402
@@ -82,8 +82,7 @@ def flight(tmp_path_factory):
             wait_until(lambda: all(on_ground(sims.truth(i)) for i in range(n)), 4.0)
             out["truth_final"] = {d: sims.truth(i) for i, d in enumerate(ids)}
         finally:
-            for link in links:
-                link.close()
+            close_links(links)
     return out
 
 

@@ -1,0 +1,207 @@
+"""Flight operations against simulated Crazyflies through unmodified cflib: preflight, the fence on every
+setpoint, landing on exceptions and Ctrl-C, emergency stop, the fleet file and ``swarm-gs fly/land/status``."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("cflib")
+
+from flight_fixtures import on_ground, open_sim_links, quick_flight, small_spec, wait_until, write_models  # noqa: E402
+from groundstation import cli  # noqa: E402
+from groundstation.demo import draw_obstacles, start_positions  # noqa: E402
+from groundstation.flight import DroneStatus, close_links, FlightConfig, FlightSession, PreflightError  # noqa: E402
+from groundstation.fleet import FleetConfig  # noqa: E402
+from groundstation.roles import EVADER_TEAM, PURSUER_TEAM  # noqa: E402
+from groundstation.safety import FenceConfig, FenceStatus, check_position  # noqa: E402
+from groundstation.sim.swarm import SimSwarm, free_base_port  # noqa: E402
+from runtime.spec import SpecError  # noqa: E402
+
+ACTORS = [{"id": "pursuer_0", "role": "pursuer"}, {"id": "scout_0", "role": "scout"},
+          {"id": "evader_0", "role": "evader"}]
+
+
+def _session(sims, fence, config=None, teams=None, actors=ACTORS, **kw):
+    links = open_sim_links(sims.uris)
+    ids = [f"cf{i}" for i in range(sims.n)]
+    teams = teams or {d: (EVADER_TEAM if i == sims.n - 1 and sims.n > 2 else PURSUER_TEAM) for i, d in enumerate(ids)}
+    return FlightSession(dict(zip(ids, links)), teams, fence, config or quick_flight(), actors=actors, **kw), links
+
+
+def _close(links):
+    close_links(links)
+
+
+# ---- configuration -------------------------------------------------------------------------------
+
+def test_flight_config_errors_name_the_field():
+    with pytest.raises(SpecError, match=r"flight\.hieght: unknown key"):
+        FlightConfig.from_dict({"hieght": 1.0})
+    with pytest.raises(SpecError, match=r"flight\.low_battery_v"):
+        FlightConfig(low_battery_v=3.9)
+    with pytest.raises(SpecError, match=r"flight\.setpoint_rate"):
+        FlightConfig(setpoint_rate=1.0)
+    with pytest.raises(SpecError, match=r"flight\.height: must be a finite number > 0"):
+        FlightConfig.from_dict({"height": -1.0})
+
+
+def test_fleet_file_errors_name_the_field(tmp_path):
+    bad = tmp_path / "fleet.toml"
+    bad.write_text('[fleet]\nmodles = "x"\n[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\n')
+    with pytest.raises(SpecError, match=r"fleet\.modles: unknown key"):
+        FleetConfig.from_toml(bad)
+    bad.write_text('[fleet]\n[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "chaser"\n')
+    with pytest.raises(SpecError, match=r"team: 'chaser'"):
+        FleetConfig.from_toml(bad)
+    bad.write_text('[fleet]\n' + '[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n' * 2)
+    with pytest.raises(SpecError, match="more than once"):
+        FleetConfig.from_toml(bad)
+    bad.write_text('[fleet]\n')
+    with pytest.raises(SpecError, match="no drones"):
+        FleetConfig.from_toml(bad)
+    fleet, flight = FleetConfig.from_toml("configs/fleet_example.toml")
+    assert len(fleet.drones) == 4 and flight.speed_scale == 0.5
+
+
+def test_demo_layout_helpers():
+    spec = small_spec()
+    obstacles = draw_obstacles(spec, seed=5)
+    assert obstacles.shape == (spec.arena.n_obstacles, 3)
+    assert np.array_equal(obstacles, draw_obstacles(spec, seed=5))
+    fence = FenceConfig.from_spec(spec, obstacles)
+    starts = start_positions(fence, 12, seed=5)
+    d = np.linalg.norm(starts[:, None, :2] - starts[None, :, :2], axis=-1) + np.eye(12) * 9
+    assert d.min() >= 0.7 - 1e-9
+    assert all(check_position(fence, (x, y, 1.0)) is FenceStatus.INSIDE for x, y, _ in starts)
+
+
+# ---- preflight -----------------------------------------------------------------------------------
+
+def test_preflight_names_each_failing_drone():
+    fence = FenceConfig.from_spec(small_spec(), draw_obstacles(small_spec(), seed=1))
+    starts = start_positions(fence, 3, seed=1)
+    starts[2, :2] = (3.5, 0.0)  # outside the fence
+    with SimSwarm(3, base_port=free_base_port(3, seed=21), seed=1, start_positions=starts) as sims:
+        sims.model.charge_as[1] = 0.3 * sims.model.params.battery_capacity_as
+        session, links = _session(sims, fence)
+        try:
+            with session:
+                with pytest.raises(PreflightError) as err:
+                    session.preflight(spec_hash="aaaaaaaaaaaa", models_spec_hash="bbbbbbbbbbbb", timeout=0.5)
+                f = err.value.failures
+                assert set(f) == {"models", "cf1", "cf2"}
+                assert "bbbbbbbbbbbb" in f["models"] and "export" in f["models"]
+                assert "battery" in f["cf1"] and "charge" in f["cf1"]
+                assert "outside the fence" in f["cf2"]
+                # without the models mismatch and require_all=False the bad drones are left on the ground
+                failures = session.preflight(require_all=False, timeout=0.5)
+                assert set(failures) == {"cf1", "cf2"}
+                assert session.statuses() == {"cf0": DroneStatus.READY, "cf1": DroneStatus.EXCLUDED,
+                                              "cf2": DroneStatus.EXCLUDED}
+                assert session.takeoff(wait=False) == ["cf0"] and session.status("cf0") is DroneStatus.TAKING_OFF
+            assert session.status("cf0") is DroneStatus.LANDED
+        finally:
+            _close(links)
+
+
+# ---- in flight -----------------------------------------------------------------------------------
+
+def test_fence_holds_against_any_command_and_an_exception_lands_everyone():
+    spec = small_spec()
+    fence = FenceConfig.from_spec(spec, draw_obstacles(spec, seed=2), box=(-1.2, 1.2, -1.2, 1.2))
+    starts = np.array([[0.0, -0.2, 0.0], [-0.6, 0.5, 0.0]])
+    with SimSwarm(2, base_port=free_base_port(2, seed=22), seed=2, start_positions=starts) as sims:
+        session, links = _session(sims, FenceConfig.from_spec(spec, box=(-1.2, 1.2, -1.2, 1.2)),
+                                  actors=ACTORS[:2])
+        samples = []
+        try:
+            with pytest.raises(RuntimeError, match="operator error"):
+                with session:
+                    session.preflight()
+                    session.assign_roles()
+                    assert sorted(session.takeoff()) == ["cf0", "cf1"]
+                    session.start_mission()
+                    end = time.monotonic() + 2.5
+                    while time.monotonic() < end:  # cf0: full speed into the fence; cf1's runtime says nothing
+                        session.set_command("cf0", (50.0, 30.0))
+                        samples.append(sims.truth(0).position)
+                        time.sleep(0.02)
+                    assert session.status("cf0") is DroneStatus.FLYING
+                    fault = session.events_of("agent_fault", "cf1")
+                    assert fault and "no command" in fault[0].detail
+                    raise RuntimeError("operator error")
+            assert session.statuses() == {"cf0": DroneStatus.LANDED, "cf1": DroneStatus.LANDED}
+            assert session.events_of("abort")[0].detail == "RuntimeError: operator error"
+            assert wait_until(lambda: all(on_ground(sims.truth(i)) for i in range(2)), 2.0)
+            assert not any(sims.is_locked(i) for i in range(2))  # landed, not dropped
+        finally:
+            _close(links)
+    xy = np.array(samples)[:, :2]
+    assert xy[:, 0].max() > 0.5  # it did fly towards the corner ...
+    assert np.abs(xy).max() < 1.2  # ... and stayed inside the fence
+    assert session.geofence_violations() == 0
+    lat = np.array(session.latencies)
+    assert lat.size > 20 and np.all(lat >= 0)
+
+
+def test_ctrl_c_lands_and_emergency_stop_locks():
+    fence = FenceConfig.from_spec(small_spec())
+    starts = np.array([[0.0, 0.0, 0.0], [0.8, 0.0, 0.0]])
+    with SimSwarm(2, base_port=free_base_port(2, seed=23), seed=3, start_positions=starts) as sims:
+        session, links = _session(sims, fence, actors=ACTORS[:2])
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                with session:
+                    session.preflight()
+                    session.takeoff()
+                    raise KeyboardInterrupt
+            assert session.statuses() == {"cf0": DroneStatus.LANDED, "cf1": DroneStatus.LANDED}
+            assert wait_until(lambda: all(on_ground(sims.truth(i)) for i in range(2)), 2.0)
+        finally:
+            _close(links)
+        session, links = _session(sims, fence, actors=ACTORS[:2])
+        try:
+            with session:
+                session.preflight()
+                session.takeoff()
+                session.emergency_stop("test")
+                assert session.statuses() == {"cf0": DroneStatus.STOPPED, "cf1": DroneStatus.STOPPED}
+            assert wait_until(lambda: all(sims.is_locked(i) for i in range(2)), 1.0)
+            assert wait_until(lambda: all(on_ground(sims.truth(i)) for i in range(2)), 2.0)
+        finally:
+            _close(links)
+
+
+# ---- swarm-gs fly / land / status over simulated drones --------------------------------------------
+
+def test_fleet_commands_over_udp(tmp_path, capsys):
+    spec = small_spec()
+    models = write_models(tmp_path / "models", spec, seed=4)
+    (tmp_path / "spec.toml").write_text("[spec.team]\nn_pursuers = 2\nn_scouts = 2\nn_evaders = 1\n")
+    fence = FenceConfig.from_toml("configs/fence.toml")
+    starts = start_positions(fence, 3, seed=4)
+    with SimSwarm(3, base_port=free_base_port(3, seed=24), seed=4, start_positions=starts) as sims:
+        drones = "".join(f'[[fleet.drones]]\nid = "cf{i}"\nuri = "{u}"\nteam = "{"evader" if i == 2 else "pursuer"}"\n'
+                         for i, u in enumerate(sims.uris))
+        fleet = tmp_path / "fleet.toml"
+        fleet.write_text(f'[fleet]\nmodels = "{models}"\nspec = "{tmp_path / "spec.toml"}"\n'
+                         f'fence = "configs/fence.toml"\nanchors = "configs/lps_anchors.toml"\n{drones}'
+                         "[flight]\nheight = 0.5\ntakeoff_duration = 1.0\ntakeoff_stagger = 0.05\nland_speed = 0.5\n")
+        assert cli.main(["status", "--fleet", str(fleet)]) == 0
+        out = capsys.readouterr().out
+        assert out.count("landed") == 3 and "fence low" in out
+        assert cli.main(["fly", "--fleet", str(fleet), "--duration", "1.0", "--log", str(tmp_path / "f.jsonl")]) == 0
+        out = capsys.readouterr().out
+        assert "mission_start" in out and "'cf0': 'landed'" in out and "geofence violations 0" in out
+        assert all(on_ground(sims.truth(i)) for i in range(3))
+        assert (tmp_path / "f.jsonl").read_text().count('"drone":"cf1"') > 5
+        # a drone left in the air by a crashed ground station is landed by `swarm-gs land`
+        links = open_sim_links(sims.uris[:1])
+        links[0].takeoff(0.5, 1.0)
+        assert wait_until(lambda: sims.truth(0).position[2] > 0.4, 3.0)
+        links[0].close()
+        assert cli.main(["land", "--fleet", str(fleet)]) == 0
+        assert "cf0: landed" in capsys.readouterr().out
+        assert on_ground(sims.truth(0))
