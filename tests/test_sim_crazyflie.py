@@ -257,8 +257,8 @@ def test_extpos_tightens_the_position_estimate(sims):
                     if len(errors) >= n:
                         return float(np.sqrt(np.mean(np.square(errors))))
 
-        lps = spread(150, extpos=False)
-        mocap = spread(150, extpos=True)
+        lps = spread(100, extpos=False)
+        mocap = spread(100, extpos=True)
         assert 0.005 < lps < 0.1 and mocap < 0.01
         # The estimate follows the external positions, not the simulator's truth.
         offset = (truth[0] + 0.3, truth[1] - 0.2, truth[2])
