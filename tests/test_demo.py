@@ -1,0 +1,64 @@
+"""``swarm-gs demo`` end to end in a subprocess: 12 simulated Crazyflies through cflib, a short mission."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("cflib")
+
+from flight_fixtures import write_models  # noqa: E402
+from groundstation import cli  # noqa: E402
+from groundstation.demo import RESULT_KEYS  # noqa: E402
+
+
+def _demo(*args: str, timeout: float = 90) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "groundstation.cli", "demo", *args], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_short_demo_flies_lands_and_reports(tmp_path):
+    models = write_models(tmp_path / "models")
+    out = tmp_path / "out"
+    r = _demo("--duration", "2.5", "--models", str(models), "--json", str(out / "demo.json"),
+              "--log", str(out / "flight.jsonl"), "--plot", str(out / "demo.png"), "--seed", "7")
+    assert r.returncode == 0, r.stderr[-3000:]
+    res = json.loads((out / "demo.json").read_text())
+    for key in RESULT_KEYS:
+        assert key in res, key
+    assert res["landed"] == 12
+    assert res["geofence_violations"] == 0
+    assert res["episodes"] == 1 and res["control_periods"] >= 20
+    assert 0.0 <= res["tracking_rate"] <= 1.0 and 0.0 < res["coverage"] <= 1.0
+    assert 0.0 < res["mean_min_dist"] <= res["mean_avg_dist"] <= res["mean_max_dist"]
+    assert res["setpoint_latency_p99_ms"] > 0 and res["setpoints"] > 12 * 2 * 15
+    assert set(res["final_status"].values()) == {"landed"}
+    agents = res["agents"]
+    assert agents["actions"] > 0 and agents["faults"] == agents["no_state"]  # no policy faults
+    assert all(v["telemetry_per_s"] > 30 for v in res["links"]["per_drone"].values())
+    assert "landed 12/12" in r.stdout and "geofence violations 0" in r.stdout
+    rows = [json.loads(line) for line in (out / "flight.jsonl").read_text().splitlines()]
+    state_rows = [row for row in rows if "event" not in row]
+    assert {row["drone"] for row in state_rows} == {f"cf{i}" for i in range(12)}
+    for key in ("t", "drone", "role", "state", "position", "setpoint", "battery", "link_quality"):
+        assert key in state_rows[0]
+    flying = [row for row in state_rows if row["state"] == "flying" and row["role"]]
+    assert {row["role"] for row in flying} == {"pursuer", "scout", "evader"}
+    assert any(row.get("event") == "mission_start" for row in rows)
+    assert (out / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_demo_usage_errors_are_one_line(tmp_path, capsys):
+    assert cli.main(["demo", "--models", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert "swarm-export onnx" in err and "Traceback" not in err
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["demo", "--kill-link", "3"])
+    assert exit_.value.code == 2 and "DRONE@SECONDS" in capsys.readouterr().err
+    models = write_models(tmp_path / "models")
+    assert cli.main(["demo", "--models", str(models), "--loss", "1.5"]) == 2
+    assert "--loss" in capsys.readouterr().err
+    assert cli.main(["demo", "--models", str(models), "--kill-link", "cf99@1"]) == 2
+    assert "cf99" in capsys.readouterr().err
