@@ -203,15 +203,16 @@ class Agent:
         self.nt = nt
         self.in_team = index < nt
         self.full = spec.sensing.observability == "full"
-        mates = np.arange(nt) if self.in_team else np.arange(nt, n)
-        self.mates = mates[mates != index]
-        self.others = np.arange(nt, n) if self.in_team else np.arange(nt)
+        self._mates_sl = slice(0, nt) if self.in_team else slice(nt, n)
+        self._others_sl = slice(nt, n) if self.in_team else slice(0, nt)
+        self._all_heard = False
         # preallocated state
         self.perception = Perception.new(spec)
         self.neighbours = Neighbours(n)
         self._pos = np.zeros((1, n, 2))
         self._vel = np.zeros((1, n, 2))
         self._visible = np.zeros((1, n, n), dtype=bool)
+        self._vis_row = self._visible[0, index]
         self._knowledge = np.zeros((1, nt, e, SIGHTING))
         self._knowledge[..., 4] = -np.inf
         self.sightings = self._knowledge[0, index] if self.in_team else None
@@ -258,34 +259,41 @@ class Agent:
         self._have_state = True
         if p.episode != self._epoch:
             self._new_epoch(p.episode)
-        i = self.index
         nb = self.neighbours
         if self.radio is not None:
             self.radio.poll(self._t_state_read, p.pos, nb, self.sightings)
-        pos, vel, vis = self._pos[0], self._vel[0], self._visible[0, i]
-        pos[i] = p.pos
-        vel[i] = p.vel
-        m = self.mates
-        pos[m] = nb.pos[m]
-        vel[m] = nb.vel[m]
-        o = self.others
-        sensed = p.sensed[o]
-        pos[o] = p.others_pos[o]
-        vel[o] = p.others_vel[o]
+        pos, vel, vis = self._pos[0], self._vel[0], self._vis_row
+        mt, ot = self._mates_sl, self._others_sl  # own team (own row overwritten next), other team
+        pos[mt] = nb.pos[mt]
+        vel[mt] = nb.vel[mt]
+        pos[self.index] = p.pos
+        vel[self.index] = p.vel
+        pos[ot] = p.others_pos[ot]
+        vel[ot] = p.others_vel[ot]
+        sensed = p.sensed[ot]
         if self.full:
-            if m.size and not np.isfinite(nb.t_state[m]).all():
-                self.stats.waiting += 1
-                return False
+            if not self._all_heard:
+                heard = nb.t_state[mt] > -np.inf
+                heard[self.index - mt.start] = True
+                if not heard.all():
+                    self.stats.waiting += 1
+                    return False
+                self._all_heard = True  # t_state only goes back to -inf with a new epoch
         else:
-            vis[m] = nb.t_recv[m] >= self._t_state_read - self.stale_after
-            vis[o] = sensed
-        if self.in_team and sensed.any():
+            np.greater_equal(nb.t_recv[mt], self._t_state_read - self.stale_after, out=vis[mt])
+            vis[ot] = sensed
+        if self.in_team:
             kn = self.sightings
-            for e in np.flatnonzero(sensed).tolist():  # own sensing overrides relayed sightings
-                row = kn[e]
-                row[0:2] = p.others_pos[self.nt + e]
-                row[2:4] = p.others_vel[self.nt + e]
-                row[4] = p.time_s
+            if sensed.all():  # own sensing overrides relayed sightings
+                kn[:, 0:2] = p.others_pos[ot]
+                kn[:, 2:4] = p.others_vel[ot]
+                kn[:, 4] = p.time_s
+            elif sensed.any():
+                for e in np.flatnonzero(sensed).tolist():
+                    row = kn[e]
+                    row[0:2] = p.others_pos[self.nt + e]
+                    row[2:4] = p.others_vel[self.nt + e]
+                    row[4] = p.time_s
         encode_observations(self.spec, self._pos, self._vel, self._obst_pos, self._obst_rad, self._knowledge,
                             p.time_s, observers=self._observers, visible=self._visible, out=self._obs_full)
         if self.config.warm:
@@ -337,6 +345,7 @@ class Agent:
 
     def _new_epoch(self, epoch: int) -> None:
         self._epoch = epoch
+        self._all_heard = False
         self.neighbours.reset()
         self._knowledge[..., :4] = 0.0
         self._knowledge[..., 4] = -np.inf
