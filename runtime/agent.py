@@ -388,6 +388,9 @@ class Agent:
         precise_sleep_for_this_thread()
         period, lead = self.period, self.config.lead_s
         tick = t0 + self.config.phase_s
+        late = self.clock() - (tick - lead)
+        if late > 0:  # started after its first tick (a slow process start): begin at the next one, no miss
+            tick += math.ceil(late / period) * period
         st = self.stats
         while True:
             if self._sleep_until(tick - lead):
