@@ -95,7 +95,8 @@ def format_run(res: dict) -> str:
         v = res.get(key)
         if v is not None:
             lines.append(f"  {label.ljust(w)}  {v if isinstance(v, int) else f'{v:.4f}'}")
-    lines += ["", f"  world steps {res['steps']}, agent ticks {res['agent_ticks']}",
+    lines += ["", f"  world steps {res['steps']} (late by p99 {res['world_step_late_p99_ms']:.1f} ms), agent ticks "
+                  f"{res['agent_ticks']}",
               f"  tick-to-action  p50 {res['tick_to_action_p50_us']:.0f} us  p99 {res['tick_to_action_p99_us']:.0f} us  "
               f"max {res['tick_to_action_max_us']:.0f} us",
               f"  state-to-action p50 {res['state_to_action_p50_us']:.0f} us  p99 {res['state_to_action_p99_us']:.0f} us"
