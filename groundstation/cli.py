@@ -29,21 +29,46 @@ def _add_sim(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--spacing", type=float, default=0.5, help="distance between start positions [m]")
     p.add_argument("--duration", type=float, default=None,
                    help="stop after this many seconds (default: run until Ctrl-C)")
+    p.add_argument("--mavlink", type=int, default=0, metavar="M",
+                   help="also run M simulated MAVLink vehicles (system ids 1..M) that send to a ground station "
+                        "listening on --mavlink-port+i; connect with mavlink:udpin:HOST:PORT (default 0)")
+    p.add_argument("--mavlink-port", type=int, default=14550,
+                   help="UDP port the ground station listens on for vehicle 1 (default 14550)")
     p.set_defaults(func=_run_sim)
 
 
 def _run_sim(args: argparse.Namespace) -> int:
-    sims = SimSwarm(args.drones, base_port=args.base_port, host=args.host, seed=args.seed, spacing=args.spacing)
+    if args.drones < 0 or args.mavlink < 0 or args.drones + args.mavlink < 1:
+        print("swarm-gs sim: --drones and --mavlink must be >= 0 and at least one drone in all; "
+              "e.g. --drones 3, or --drones 0 --mavlink 1", file=sys.stderr)
+        return 2
+    sims = None
+    vehicles = []
     try:
-        sims.start()
-    except SimError as exc:
+        if args.drones:
+            sims = SimSwarm(args.drones, base_port=args.base_port, host=args.host, seed=args.seed,
+                            spacing=args.spacing).start()
+        if args.mavlink:
+            from groundstation.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
+            for i in range(args.mavlink):
+                start = (i * args.spacing, -args.spacing, 0.0)
+                vehicles.append(MavlinkVehicle(f"udpout:{args.host}:{args.mavlink_port + i}",
+                                               VehicleConfig(system_id=i + 1), start=start,
+                                               seed=args.seed + i).start())
+    except (SimError, OSError) as exc:
         print(f"swarm-gs sim: {exc}", file=sys.stderr)
+        _stop_sims(sims, vehicles)
         return 2
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    print(f"{args.drones} simulated Crazyflies:", flush=True)
-    for uri in sims.uris:
-        print(f"  {uri}", flush=True)
+    if sims is not None:
+        print(f"{args.drones} simulated Crazyflies:", flush=True)
+        for uri in sims.uris:
+            print(f"  {uri}", flush=True)
+    if vehicles:
+        print(f"{len(vehicles)} simulated MAVLink vehicles:", flush=True)
+        for i in range(len(vehicles)):
+            print(f"  mavlink:udpin:{args.host}:{args.mavlink_port + i}", flush=True)
     try:
         deadline = None if args.duration is None else time.monotonic() + args.duration
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
@@ -51,9 +76,16 @@ def _run_sim(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        sims.stop()
+        _stop_sims(sims, vehicles)
     print("simulators stopped", flush=True)
     return 0
+
+
+def _stop_sims(sims, vehicles) -> None:
+    for vehicle in vehicles:
+        vehicle.stop()
+    if sims is not None:
+        sims.stop()
 
 
 def _kill_link(text: str) -> tuple[str, float]:

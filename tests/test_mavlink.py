@@ -3,6 +3,8 @@ pymavlink peers; nothing is mocked."""
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -185,3 +187,19 @@ def test_disarm_in_the_air_is_refused_unless_forced(pair):
         link.disarm()
     link.disarm(force=True)
     assert _wait(lambda: vehicle.position[2] == 0.0, 1.0)
+
+
+def test_swarm_gs_sim_serves_mavlink_vehicles():
+    port = free_base_port(2)
+    proc = subprocess.Popen([sys.executable, "-m", "groundstation.cli", "sim", "--drones", "0", "--mavlink", "2",
+                             "--mavlink-port", str(port), "--duration", "20"], stdout=subprocess.PIPE, text=True)
+    try:
+        lines = [proc.stdout.readline() for _ in range(3)]
+        assert "2 simulated MAVLink vehicles" in lines[0]
+        uri = lines[2].strip()
+        assert uri == f"mavlink:udpin:127.0.0.1:{port + 1}"
+        with open_link(uri, connect_timeout=5.0) as link:
+            assert link.target_system == 2 and link.telemetry().flight_state is FlightState.DISARMED
+    finally:
+        proc.terminate()
+        assert proc.wait(timeout=5) == 0
