@@ -186,6 +186,7 @@ class CflibLink(Link):
             position_variance=variance,
             rssi=None if rssi is None else -float(rssi),
             vehicle_time_ms=timestamp,
+            planner_active=bool(data["supervisor.info"] & (1 << 8)),  # BIT_HL_CONTROL_ACTIVE
         ))
 
     def _link_quality(self, now: float) -> float:

@@ -5,12 +5,16 @@ cflib (``udp://`` URIs, ``CflibLink``); 10 form the pursuer team (pursuer and sc
 evader actors. The arena's three obstacles are drawn from the spec with the seed (``runtime.world``) and
 become keep-out circles of the fence (the simulator has no physical obstacles, so the fence is what keeps
 drones out of them). Preflight, role assignment, staggered takeoff, the mission flown by the exported actors
-(``mission.AgentPilot``: one ``runtime.agent.Agent`` per actor), landing; then the paper's metrics (``runtime.metrics``, one episode per
-``spec.timing.episode_steps`` control periods), link statistics, a JSON-lines flight log and a picture.
+(``mission.AgentPilot``: one ``runtime.agent.Agent`` per actor), landing; then the paper's metrics
+(``runtime.metrics``, one episode per ``spec.timing.episode_steps`` control periods), link statistics, a
+JSON-lines flight log and a picture.
 
 Failure injection: ``kill_link = (drone, t)`` makes that simulated drone stop answering ``t`` s into the
 mission; ``loss = p`` drops every datagram in either direction with probability ``p`` (a relay between cflib
-and the simulators).
+and the simulators) once the links are up. cflib's UDP driver does not retransmit, so a lost table-of-contents
+request would stall the connection; a Crazyradio retransmits at its link layer, and what ``loss`` models is
+what is still lost after that: setpoints, telemetry samples and high-level commands (the session repeats land
+commands until the drone reports landed).
 """
 from __future__ import annotations
 
@@ -47,7 +51,8 @@ log = logging.getLogger(__name__)
 RESULT_KEYS = ("mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage",
                "collisions_per_episode", "episodes", "landed", "geofence_violations", "setpoint_latency_p99_ms")
 LANDED_Z = 0.05
-"""A simulated drone at or below this height with its motors off has landed [m]."""
+"""A simulated drone at or below this height with its motors off has landed [m] (``landed``; ``locked`` counts
+those of them whose firmware cut the motors instead: a watchdog after link loss, or an emergency stop)."""
 
 
 class DemoError(RuntimeError):
@@ -277,11 +282,13 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     t_start = time.monotonic()
     result: dict[str, Any] = {}
     with SimSwarm(n, base_port=base, seed=opts.seed, start_positions=starts) as sims:
-        relay = LossyRelay([base + i for i in range(n)], opts.loss, opts.seed) if opts.loss > 0 else None
+        relay = LossyRelay([base + i for i in range(n)], 0.0, opts.seed) if opts.loss > 0 else None
         uris = sims.uris if relay is None else [f"udp://127.0.0.1:{p}" for p in relay.ports]
         links = []
         try:
             links = _open_links(uris, opts.telemetry_period_ms, flight_cfg.link_loss_timeout)
+            if relay is not None:
+                relay.loss = opts.loss  # only now: cflib's UDP driver does not retransmit TOC requests
             t_connected = time.monotonic()
             by_id = dict(zip(ids, links))
             session = FlightSession(by_id, teams, fence, flight_cfg,
@@ -360,6 +367,7 @@ def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: Episod
     res.update({
         "episodes": summary.get("episodes", 0),
         "landed": landed,
+        "locked": sum(1 for tr in truth if tr.supervisor == "locked"),
         "drones": len(ids),
         "geofence_violations": session.geofence_violations(),
         "setpoint_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
@@ -371,6 +379,8 @@ def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: Episod
         "control_periods": pilot.ticks,
         "agents": pilot.stats(),
         "final_status": {d: s.value for d, s in session.statuses().items()},
+        "final_truth": {d: {"z": round(tr.position[2], 3), "motors_on": tr.motors_on, "supervisor": tr.supervisor}
+                        for d, tr in zip(ids, truth)},
         "final_roles": session.assignment.by_drone,
         "role_changes": [c.describe() for c in session.role_changes],
         "events": events,
@@ -450,7 +460,7 @@ def format_summary(res: dict[str, Any]) -> str:
         f"tracking rate {f(res['tracking_rate'])}   coverage {f(res['coverage'])}   "
         f"collisions/episode {f(res['collisions_per_episode'], 2)}   captures/episode "
         f"{f(res['captures_per_episode'], 2)}",
-        f"landed {res['landed']}/{res['drones']}   geofence violations {res['geofence_violations']}   "
+        f"landed {res['landed']}/{res['drones']} ({res['locked']} locked)   geofence violations {res['geofence_violations']}   "
         f"setpoint latency p50 {f(res['setpoint_latency_p50_ms'], 2)} ms  p99 {f(res['setpoint_latency_p99_ms'], 2)} ms",
         f"links: {f(links['mean_packets_sent_per_s'], 1)} packets/s sent and {f(links['mean_packets_received_per_s'], 1)} "
         f"received per drone; {f(links['total_packets_per_s'], 0)} packets/s in all (telemetry every "

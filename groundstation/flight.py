@@ -160,6 +160,8 @@ class DroneStatus(str, enum.Enum):
 
 
 AIRBORNE = (DroneStatus.TAKING_OFF, DroneStatus.FLYING, DroneStatus.HOLDING)
+LAND_CONFIRM_RETRY = 0.05
+"""Interval of repeated land (and takeoff) commands until the vehicle's planner reports it took one [s]."""
 
 
 class PreflightError(RuntimeError):
@@ -440,7 +442,7 @@ class FlightSession:
                 except LinkError as exc:
                     self._set_status(d, DroneStatus.EXCLUDED, f"takeoff failed: {exc.problem}")
                     continue
-                d.takeoff_t = time.monotonic()
+                d.takeoff_t = d.land_sent_t = time.monotonic()
                 self._set_status(d, DroneStatus.TAKING_OFF, f"to {self.height:.2f} m")
         if wait:
             deadline = time.monotonic() + cfg.takeoff_duration + cfg.takeoff_timeout
@@ -621,6 +623,16 @@ class FlightSession:
             elif now - d.takeoff_t > cfg.takeoff_duration + cfg.takeoff_timeout:
                 self._begin_landing(d, "did not reach mission height")
                 return "takeoff failed"
+            elif tel is not None and tel.flight_state is FlightState.LANDED and not tel.planner_active \
+                    and tel.t > d.land_sent_t and now - d.land_sent_t >= 4 * LAND_CONFIRM_RETRY:
+                # the takeoff command was lost (radio links drop packets): ask again; a drone already
+                # climbing reports FLYING and is left alone
+                with d.lock:
+                    d.land_sent_t = now
+                    try:
+                        d.link.takeoff(self.height, cfg.takeoff_duration)
+                    except LinkError as exc:
+                        log.warning("%s: takeoff command not sent: %s", d.id, exc)
             return None
         if tel is not None and tel.battery < cfg.low_battery_v:
             if d.low_battery_since is None:
@@ -689,6 +701,10 @@ class FlightSession:
             log.warning("%s: land command not sent: %s", d.id, exc)
 
     def _check_landings(self, now: float) -> None:
+        """Follow every landing to the ground. A land command can be lost on the radio: until the vehicle
+        reports its planner active (or, for links that do not report it, until the landing should have
+        ended) the command is repeated, every ``LAND_CONFIRM_RETRY`` s at first; a Crazyflie that took the
+        setpoint stop but not the land would cut its motors 0.2 s later."""
         for d in self.drones.values():
             if d.status is not DroneStatus.LANDING:
                 continue
@@ -697,9 +713,14 @@ class FlightSession:
                                                                                  FlightState.LOCKED):
                 with d.lock:
                     self._set_status(d, DroneStatus.LANDED, f"on the ground at z = {tel.position[2]:.2f} m")
+                if tel.flight_state is FlightState.LOCKED:
+                    self._event(d.id, "dropped", "the firmware cut the motors (locked) instead of landing")
             elif d.link.link_lost:
                 with d.lock:
                     self._set_status(d, DroneStatus.LOST, "link lost while landing")
+            elif tel is not None and tel.planner_active is False and tel.t > d.land_sent_t \
+                    and now - d.land_sent_t >= LAND_CONFIRM_RETRY:
+                self._send_land(d, now)
             elif now - d.land_sent_t > max(self.config.land_retry, self.height / self.config.land_speed + 1.0):
                 self._send_land(d, now)
 

@@ -71,6 +71,9 @@ class Telemetry:
     """Received signal strength [dBm], when the vehicle reports it."""
     vehicle_time_ms: int | None = None
     """The vehicle's own timestamp of the measurement [ms] (Crazyflie: 24-bit tick; MAVLink: time_boot_ms)."""
+    planner_active: bool | None = None
+    """The onboard planner (Crazyflie: high-level commander) flies a trajectory (takeoff, land, go_to), when
+    the vehicle reports it; tells the ground station that a takeoff or land command got through."""
 
 
 @dataclass(frozen=True)

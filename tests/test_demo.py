@@ -28,7 +28,7 @@ def test_short_demo_flies_lands_and_reports(tmp_path):
     res = json.loads((out / "demo.json").read_text())
     for key in RESULT_KEYS:
         assert key in res, key
-    assert res["landed"] == 12
+    assert res["landed"] == 12 and res["locked"] == 0
     assert res["geofence_violations"] == 0
     assert res["episodes"] == 1 and res["control_periods"] >= 20
     assert 0.0 <= res["tracking_rate"] <= 1.0 and 0.0 < res["coverage"] <= 1.0
@@ -38,7 +38,7 @@ def test_short_demo_flies_lands_and_reports(tmp_path):
     agents = res["agents"]
     assert agents["actions"] > 0 and agents["faults"] == agents["no_state"]  # no policy faults
     assert all(v["telemetry_per_s"] > 30 for v in res["links"]["per_drone"].values())
-    assert "landed 12/12" in r.stdout and "geofence violations 0" in r.stdout
+    assert "landed 12/12 (0 locked)" in r.stdout and "geofence violations 0" in r.stdout
     rows = [json.loads(line) for line in (out / "flight.jsonl").read_text().splitlines()]
     state_rows = [row for row in rows if "event" not in row]
     assert {row["drone"] for row in state_rows} == {f"cf{i}" for i in range(12)}
