@@ -148,23 +148,25 @@ def add_run(sub: argparse._SubParsersAction) -> None:
 DEGRADE_COLUMNS = (("tracking_rate", "tracking", "{:.3f}"), ("mean_min_dist", "min dist [m]", "{:.3f}"),
                    ("mean_avg_dist", "mean dist [m]", "{:.3f}"), ("coverage", "coverage", "{:.3f}"),
                    ("collisions_per_episode", "collisions/ep", "{:.2f}"), ("episodes", "episodes", "{}"),
-                   ("delivered_fraction", "delivered", "{:.3f}"), ("tick_to_action_p99_us", "p99 [us]", "{:.0f}"),
+                   ("delivered_fraction", "delivered", "{:.3f}"), ("tick_to_action_p99_us", "tick-to-action p99 [us]", "{:.0f}"),
                    ("deadline_misses", "misses", "{}"))
 
 
 def _cmd_degrade(args: argparse.Namespace) -> int:
     from runtime.swarm import run_swarm
-    rows = []
+    rows, repeats = [], []
     t0 = time.time()
-    for latency in args.latencies:
-        for loss in args.losses:
-            res = run_swarm(args.models, _run_config(args, args.duration, loss, latency))
-            c = res["comms"]
-            heard = c["delivered"] + c["dropped_loss"] + c["dropped_range"]
-            res["delivered_fraction"] = c["delivered"] / heard if heard else float("nan")
-            rows.append({"loss": loss, "latency_s": latency, **res})
-            print(f"loss {loss:g} latency {latency * 1e3:g} ms: tracking {res['tracking_rate']:.3f}, min dist "
-                  f"{res['mean_min_dist']:.3f} m, p99 {res['tick_to_action_p99_us']:.0f} us", flush=True)
+    cells = [(loss, latency) for latency in args.latencies for loss in args.losses]
+    cells += [cells[0]] * args.baseline_repeats
+    for k, (loss, latency) in enumerate(cells):
+        res = run_swarm(args.models, _run_config(args, args.duration, loss, latency))
+        c = res["comms"]
+        heard = c["delivered"] + c["dropped_loss"] + c["dropped_range"]
+        res["delivered_fraction"] = c["delivered"] / heard if heard else float("nan")
+        (rows if k < len(cells) - args.baseline_repeats else repeats).append({"loss": loss, "latency_s": latency,
+                                                                             **res})
+        print(f"loss {loss:g} latency {latency * 1e3:g} ms: tracking {res['tracking_rate']:.3f}, min dist "
+              f"{res['mean_min_dist']:.3f} m, p99 {res['tick_to_action_p99_us']:.0f} us", flush=True)
     out = args.out
     out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"models": str(args.models), "duration_s_per_cell": args.duration, "seed": args.seed,
@@ -172,22 +174,27 @@ def _cmd_degrade(args: argparse.Namespace) -> int:
             "spec_hash": rows[0]["config"]["spec_hash"], "observability": rows[0]["config"]["observability"],
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t0)), "machine": _machine(),
             "wall_s": round(time.time() - t0, 1)}
-    out.with_suffix(".json").write_text(json.dumps(_json_safe({"meta": meta, "rows": rows}), indent=2) + "\n")
-    out.with_suffix(".md").write_text(degradation_markdown(meta, rows))
+    out.with_suffix(".json").write_text(json.dumps(_json_safe({"meta": meta, "rows": rows, "baseline_repeats": repeats}),
+                                                   indent=2) + "\n")
+    out.with_suffix(".md").write_text(degradation_markdown(meta, rows, repeats))
     print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}")
     return 0
 
 
 def _machine() -> str:
-    return f"{platform.machine()} {platform.processor() or ''} Linux {platform.release()}, {_ncpu()} CPUs".strip()
-
-
-def _ncpu() -> int:
     import os
-    return os.cpu_count() or 0
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} CPUs, {platform.system()} {platform.release()}"
 
 
-def degradation_markdown(meta: dict, rows: list[dict]) -> str:
+def degradation_markdown(meta: dict, rows: list[dict], repeats: list[dict] | None = None) -> str:
     head = "| loss | latency [ms] | " + " | ".join(c[1] for c in DEGRADE_COLUMNS) + " |"
     sep = "|" + "---|" * (2 + len(DEGRADE_COLUMNS))
     lines = [f"# Runtime degradation: message loss x latency", "",
@@ -196,15 +203,33 @@ def degradation_markdown(meta: dict, rows: list[dict]) -> str:
              f"{'processes over UDP' if meta['processes'] else 'threads over the in-process bus'}, spec "
              f"{meta['spec_hash']} ({meta['observability']} observability), world seed {meta['seed']} in every "
              f"cell (same episodes; differences come from the channel and from thread timing).", "",
-             head, sep]
+             _what_comms_carry(meta["observability"]), "", head, sep]
     for r in rows:
         cells = []
         for key, _, fmt in DEGRADE_COLUMNS:
             v = r.get(key)
             cells.append("-" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v))
         lines.append(f"| {r['loss']:g} | {r['latency_s'] * 1e3:g} | " + " | ".join(cells) + " |")
+    if repeats:
+        base = [rows[0]] + list(repeats)
+        lines += ["", f"Run-to-run spread: the first cell (loss {rows[0]['loss']:g}, latency "
+                      f"{rows[0]['latency_s'] * 1e3:g} ms) run {len(base)} times gives"]
+        for key, label, fmt in DEGRADE_COLUMNS[:5]:
+            vals = [r[key] for r in base]
+            lines.append(f"- {label}: " + ", ".join(fmt.format(v) for v in vals)
+                         + f" (range {fmt.format(max(vals) - min(vals))})")
+        lines.append("Differences between cells smaller than these ranges are within the noise of real-time runs.")
     lines.append("")
     return "\n".join(lines)
+
+
+def _what_comms_carry(observability: str) -> str:
+    if observability == "full":
+        return ("With full observability (what the paper trained with) every drone senses every target itself and "
+                "the radio is unlimited in range; loss and latency act on what it knows of its teammates (their "
+                "positions and velocities in the observation's teammate slots are as old as the last message heard).")
+    return ("With partial observability targets are known only by own sensing or relayed sightings, and teammates "
+            "only within comm range: loss and latency act on both the teammate slots and the target slots (ages).")
 
 
 def add_degrade(sub: argparse._SubParsersAction) -> None:
@@ -214,6 +239,8 @@ def add_degrade(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=_positive, default=30.0, help="seconds of real time per cell")
     p.add_argument("--losses", type=_floats, default=[0.0, 0.2, 0.5], help="comma-separated loss probabilities")
     p.add_argument("--latencies", type=_floats, default=[0.0, 0.05, 0.2], help="comma-separated latencies [s]")
+    p.add_argument("--baseline-repeats", type=int, default=0,
+                   help="run the first cell this many extra times to show the run-to-run spread")
     p.add_argument("--out", type=Path, default=Path("results/runtime_degradation"),
                    help="output path without suffix (writes .md and .json)")
     p.set_defaults(func=_cmd_degrade)

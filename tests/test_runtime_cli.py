@@ -45,11 +45,13 @@ def test_run_processes_over_udp(models, tmp_path):
 def test_degrade_writes_the_table(models, tmp_path):
     out = tmp_path / "deg"
     assert main(["degrade", "--models", str(models), "--duration", "1", "--losses", "0,0.5", "--latencies", "0.05",
-                 "--out", str(out)]) == 0
+                 "--baseline-repeats", "1", "--out", str(out)]) == 0
     doc = json.loads(out.with_suffix(".json").read_text())
     assert [(r["loss"], r["latency_s"]) for r in doc["rows"]] == [(0.0, 0.05), (0.5, 0.05)]
+    assert [(r["loss"], r["latency_s"]) for r in doc["baseline_repeats"]] == [(0.0, 0.05)]
+    assert doc["rows"][1]["delivered_fraction"] < doc["rows"][0]["delivered_fraction"] == 1.0
     md = out.with_suffix(".md").read_text()
-    assert "| 0.5 | 50 |" in md and "tracking" in md
+    assert "| 0.5 | 50 |" in md and "tracking" in md and "Run-to-run spread" in md
 
 
 def _cli(*args):
