@@ -104,6 +104,9 @@ def format_run(res: dict) -> str:
               f"  deadline misses {res['deadline_misses']} (skipped ticks {res['skipped_ticks']}), "
               f"faults {res['agent_faults']}, waiting for neighbours {res['waiting_ticks']} ticks",
               "  messages " + ", ".join(f"{k} {v}" for k, v in res["comms"].items() if v)]
+    if res.get("agents_cpu_s") is not None:
+        lines.append(f"  agents' CPU time {res['agents_cpu_s']} s; host load average {res['host_load_avg_1min'][0]} at "
+                     f"start, {res['host_load_avg_1min'][1]} at the end")
     if res.get("rss_mib"):
         lines.append(f"  resident memory {res['rss_mib']} MiB" + (" (sum over agent processes)" if c["processes"]
                                                                   else " (the agents' process)"))

@@ -332,6 +332,8 @@ def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
     agents: list[Agent] = []
     radios: list[Radio] = []
     old_switch = sys.getswitchinterval()
+    load_before = os.getloadavg()[0]
+    cpu_before = time.process_time()
     try:
         start = time.monotonic() + cfg.startup_s + (0.1 * n if cfg.processes else 0.0)
         t_end = start + cfg.duration_s
@@ -389,7 +391,11 @@ def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
             if len(agent_res) != n:
                 raise RuntimeError(f"only {len(agent_res)} of {n} agent processes reported")
             rss_kib = sum(r["rss_kib"] for r in agent_res)
-        return _summarize(spec, cfg, world_res, agent_res, rss_kib)
+        res = _summarize(spec, cfg, world_res, agent_res, rss_kib)
+        res["host_load_avg_1min"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
+        if not cfg.processes:
+            res["agents_cpu_s"] = round(time.process_time() - cpu_before, 2)
+        return res
     finally:
         sys.setswitchinterval(old_switch)
         board.request_stop()
