@@ -44,7 +44,7 @@ from groundstation.safety import FenceConfig, KeepOut, in_safe_set
 from groundstation.sim.swarm import SimSwarm, free_base_port
 from runtime.metrics import MetricsAccumulator
 from runtime.policy import load_models, read_manifest
-from runtime.spec import SpecError, SwarmSpec
+from runtime.spec import SwarmSpec
 
 log = logging.getLogger(__name__)
 
@@ -370,6 +370,7 @@ def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: Episod
         "locked": sum(1 for tr in truth if tr.supervisor == "locked"),
         "drones": len(ids),
         "geofence_violations": session.geofence_violations(),
+        "ground_station_stalls": session.stalls,
         "setpoint_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
         "setpoint_latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
         "setpoints": int(lat.size),
@@ -468,7 +469,7 @@ def format_summary(res: dict[str, Any]) -> str:
     ]
     for e in res["events"]:
         if e["kind"] in ("link_lost", "low_battery", "agent_fault", "position_invalid", "fence_breach",
-                         "roles_reassigned", "abort", "emergency_stop"):
+                         "roles_reassigned", "abort", "emergency_stop", "dropped", "ground_station_stall"):
             lines.append(f"  t={e['t']:+.2f} s {e['drone'] or '':>5} {e['kind']}: {e['detail']}")
     if "kill_link" in res:
         k = res["kill_link"]

@@ -55,8 +55,7 @@ import numpy as np
 from groundstation import roles as roles_mod
 from groundstation.link import FlightState, Link, LinkError, Telemetry
 from groundstation.positioning import BATTERY_EMPTY_V, BATTERY_FULL_V, PositionTracker
-from groundstation.safety import FenceConfig, FenceStatus, Geofence, GuardState, check_position, in_safe_set, \
-    limit_velocity
+from groundstation.safety import FenceConfig, Geofence, GuardState, in_safe_set, limit_velocity
 from runtime.spec import Role, SpecError, from_mapping, load_toml
 
 log = logging.getLogger(__name__)
@@ -160,6 +159,11 @@ class DroneStatus(str, enum.Enum):
 
 
 AIRBORNE = (DroneStatus.TAKING_OFF, DroneStatus.FLYING, DroneStatus.HOLDING)
+STALL_GAP = 0.1
+"""A supervisor tick later than this after the previous one means the ground station stalled [s]."""
+STALL_GRACE = 0.05
+"""After a stall, telemetry silence is judged again only this much later [s], once the receive threads have
+delivered what queued up meanwhile."""
 LAND_CONFIRM_RETRY = 0.05
 """Interval of repeated land (and takeoff) commands until the vehicle's planner reports it took one [s]."""
 
@@ -256,12 +260,14 @@ class FlightSession:
         self._period = 1.0 / config.setpoint_rate
         self._t0 = time.monotonic()
         self._next_record = 0.0
-        self._entered = False
+        self._last_tick = time.monotonic()
+        self._grace_until = 0.0
+        self.stalls = 0
+        """Times the supervisor found that the ground station itself had not run for ``STALL_GAP``."""
 
     # ---- context manager ---------------------------------------------------------------------------
 
     def __enter__(self) -> "FlightSession":
-        self._entered = True
         for d in self.drones.values():
             self.tracker.attach(d.id, d.link)  # registered first: the setpoint callback reads the tracker
             cb = self._make_callback(d)
@@ -289,7 +295,7 @@ class FlightSession:
                     try:
                         d.link.remove_telemetry_callback(cb)
                     except ValueError:
-                        pass
+                        log.debug("%s: setpoint callback was already removed", d.id)
                 self.tracker.detach(d.id)
 
     # ---- queries -----------------------------------------------------------------------------------
@@ -585,10 +591,21 @@ class FlightSession:
     def _tick(self, now: float) -> None:
         cfg = self.config
         reassign: list[str] = []
+        gap = now - self._last_tick
+        self._last_tick = now
+        if gap > STALL_GAP:
+            # The ground station itself did not run (CPU starvation, a paused process): every link looks
+            # silent for that long. Give the receive threads time to deliver what queued up before telemetry
+            # silence is judged again, or one stall would "lose" the whole swarm.
+            self._grace_until = now + STALL_GRACE
+            self.stalls += 1
+            self._event(None, "ground_station_stall", f"supervisor did not run for {gap * 1e3:.0f} ms",
+                        {"gap_s": gap})
+        judge_silence = now >= self._grace_until
         for d in self.drones.values():
             st = d.status
             if st in AIRBORNE:
-                why = self._failsafe(d, now)
+                why = self._failsafe(d, now, judge_silence)
                 if why is not None:
                     reassign.append(f"{d.id}: {why}")
             elif st is DroneStatus.LOST and now - d.land_sent_t >= cfg.land_retry:
@@ -602,12 +619,13 @@ class FlightSession:
             self._next_record = now + 1.0 / cfg.record_rate
             self._write_rows(now)
 
-    def _failsafe(self, d: _Drone, now: float) -> str | None:
-        """Judge one airborne drone; returns why it left the mission, or None."""
+    def _failsafe(self, d: _Drone, now: float, judge_silence: bool = True) -> str | None:
+        """Judge one airborne drone; returns why it left the mission, or None. ``judge_silence`` False: the
+        ground station has just stalled, so telemetry silence and stale positions are not judged yet."""
         cfg = self.config
         link = d.link
         silence = link.telemetry_age(now)
-        if link.link_lost or silence > cfg.link_loss_timeout:
+        if judge_silence and (link.link_lost or silence > cfg.link_loss_timeout):
             with d.lock:
                 self._set_status(d, DroneStatus.LOST, f"no telemetry for {silence * 1e3:.0f} ms")
             self._event(d.id, "link_lost", f"telemetry silent for {silence * 1e3:.0f} ms",
@@ -663,6 +681,8 @@ class FlightSession:
             return "agent fault"
         pos = self.tracker.position(d.id)
         var = tel.position_variance if tel is not None else None
+        if pos is None and not judge_silence:
+            return None
         invalid = pos is None or (var is not None and not max(var) <= cfg.max_position_variance)
         if invalid:
             if d.invalid_since is None:
@@ -799,8 +819,3 @@ def close_links(links: Iterable[Link]) -> None:
         t.start()
     for t in threads:
         t.join(timeout=5.0)
-
-
-def check_fence_for_drones(fence: FenceConfig, positions: Mapping[str, Sequence[float]]) -> dict[str, FenceStatus]:
-    """Fence status of each drone's position (for ``swarm-gs status``)."""
-    return {d: check_position(fence, p) for d, p in positions.items()}
