@@ -251,7 +251,14 @@ class CflibLink(Link):
         if latest is not None and latest.flight_state is FlightState.FLYING and not self.link_lost:
             logger.warning("%s: closing while flying; cflib sends a zero-thrust setpoint on close, so the "
                            "drone will drop. Land first.", self.uri)
-        self._cf.close_link()
+        # cflib's close_link() sends the zero setpoint, closes the driver, then waits up to 1 s for its packet
+        # handler thread to time out of an empty queue. Return once the driver is closed and leave that wait
+        # to a daemon thread, so that closing 12 links does not take 12 s.
+        closer = threading.Thread(target=self._cf.close_link, name=f"close {self.uri}", daemon=True)
+        closer.start()
+        deadline = time.monotonic() + 2.0
+        while closer.is_alive() and self._cf.link is not None and time.monotonic() < deadline:
+            time.sleep(0.002)
 
     @property
     def crazyflie(self) -> Crazyflie:

@@ -339,6 +339,8 @@ class MavlinkLink(Link):
             link_quality=self._link_quality(now),
             flight_state=self.flight_state,
             vehicle_time_ms=int(msg.time_boot_ms),
+            planner_active=self._landed_state in (self._mav.MAV_LANDED_STATE_TAKEOFF,
+                                                  self._mav.MAV_LANDED_STATE_LANDING),
         ))
 
     def _link_quality(self, now: float) -> float:

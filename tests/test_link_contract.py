@@ -118,6 +118,7 @@ def test_takeoff_velocity_and_position_setpoints_move_it_then_it_lands(peer_link
     x0, y0, _ = peer.truth()
     link.takeoff(0.5, 1.0)
     assert _wait(lambda: _state(link) is FlightState.FLYING, 0.5)
+    assert _wait(lambda: link.telemetry().planner_active, 0.5)  # the onboard planner took the takeoff
     assert _wait(lambda: abs(peer.truth()[2] - 0.5) < 0.02, 2.0)
     time.sleep(0.2)  # the climb has settled
     start = peer.truth()
@@ -130,6 +131,7 @@ def test_takeoff_velocity_and_position_setpoints_move_it_then_it_lands(peer_link
     assert np.allclose(peer.truth(), target, atol=0.06)
     assert np.allclose(link.telemetry().position, target, atol=0.15)  # the estimate, with positioning noise
     link.land(0.8)
+    assert _wait(lambda: link.telemetry().planner_active, 0.5)
     assert _wait(lambda: _state(link) in ON_GROUND, 2.0)
     assert _wait(lambda: peer.truth()[2] == 0.0, 0.5)
     assert not link.link_lost
@@ -159,9 +161,11 @@ def test_a_silent_peer_is_detected_from_telemetry_silence_within_300_ms(peer_lin
     assert link.telemetry_age(now=link.telemetry().t + 0.1) == pytest.approx(0.1)
 
 
-def test_close_is_idempotent_and_a_closed_link_refuses_commands(peer_link):
+def test_close_is_idempotent_quick_and_a_closed_link_refuses_commands(peer_link):
     _, link = peer_link
+    t0 = time.monotonic()
     link.close()
+    assert time.monotonic() - t0 < 0.5
     link.close()
     for call in (lambda: link.send_velocity(0.0, 0.0, 0.0), lambda: link.send_position(0.0, 0.0, 0.5),
                  lambda: link.takeoff(0.5, 1.0), lambda: link.land(1.0), link.emergency_stop):
