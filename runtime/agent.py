@@ -32,9 +32,10 @@ per ``broadcast_period_s``, by default the spec's control period, whatever the c
 the state read to the published command (it includes the observation build).
 
 A fault never stops the loop or other agents: the drone gets the safe action, the fault is counted in
-``AgentStats`` and reported to ``on_fault``; the next tick tries again. The steady-state loop reuses
-preallocated buffers (perception, belief arrays, observation, action, wire buffer); the temporaries numpy
-makes inside the shared encoder are freed at once (no growth, checked by a test).
+``AgentStats`` and reported to ``on_fault``; the next tick tries again. The steady-state loop writes into buffers preallocated
+once (perception, belief arrays, sightings, observation, action, command, wire buffer, timing rings); what
+Python cannot avoid - numpy's temporaries inside the shared encoder, the tuples of decoded messages - is
+freed within the tick, so memory does not grow (checked by a test with tracemalloc).
 """
 from __future__ import annotations
 
