@@ -26,9 +26,15 @@ def full():
 
 
 @pytest.fixture(scope="module")
-def partial():
-    _, models, _ = exported(True)
-    return load_models(models)
+def partial(tmp_path_factory):
+    # only this module needs partial-observability actors: export them with a short parity check
+    from firmware_export.onnx_export import export_run
+    from runtime.spec import SwarmSpec
+    from tests.runtime_fixtures import make_run
+    root = tmp_path_factory.mktemp("partial")
+    run = make_run(root / "run", SwarmSpec.from_dict({"sensing": {"observability": "partial"}}), seed=1)
+    export_run(run, root / "models", n_random=500, n_recorded=500)
+    return load_models(root / "models")
 
 
 def make_agents(manifest, policies, board, cfg=None, comms=None, on_fault=None):
