@@ -100,3 +100,45 @@ def wait_until(predicate, timeout: float, period: float = 0.01) -> bool:
 def on_ground(truth, z: float = 0.05) -> bool:
     """A simulated drone's ground truth says it is down with its motors off."""
     return truth.position[2] <= z and not truth.motors_on
+
+
+class ScriptedLink:
+    """A ``Link`` whose telemetry the test publishes itself (for supervisor logic without a simulator).
+    Commands are recorded in ``sent``."""
+
+    def __new__(cls, uri: str):
+        from groundstation.link import Link, LinkStats
+
+        class _Scripted(Link):
+            def __init__(self, uri: str) -> None:
+                super().__init__(uri)
+                self.sent: list[tuple] = []
+
+            def feed(self, t: float, position=(0.0, 0.0, 0.5), flight_state=None, battery: float = 4.0):
+                from groundstation.link import FlightState, Telemetry
+                self._publish(Telemetry(t=t, position=tuple(position), velocity=(0.0, 0.0, 0.0), battery=battery,
+                                        link_quality=1.0, flight_state=flight_state or FlightState.FLYING))
+
+            def send_velocity(self, vx, vy, vz, yaw_rate=0.0):
+                self.sent.append(("velocity", vx, vy, vz))
+
+            def send_position(self, x, y, z, yaw=0.0):
+                self.sent.append(("position", x, y, z))
+
+            def takeoff(self, height, duration):
+                self.sent.append(("takeoff", height, duration))
+
+            def land(self, duration, height=0.0):
+                self.sent.append(("land", duration, height))
+
+            def emergency_stop(self):
+                self.sent.append(("emergency_stop",))
+
+            def stats(self):
+                return LinkStats(len(self.sent), 0, self._telemetry_count, self.telemetry_age(), self.link_lost,
+                                 self._opened_at)
+
+            def close(self):
+                pass
+
+        return _Scripted(uri)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import pytest
 
 pytest.importorskip("cflib")
@@ -153,3 +152,28 @@ def test_roles_are_repaired_and_the_rest_fly_on(flight):
     assert all(flight["final"][d] is DroneStatus.LANDED for d in flight["ids"] if d != flight["cut"])
     assert all(on_ground(t) for t in flight["truth_final"].values())
     assert s.geofence_violations() == 0
+
+
+def test_a_ground_station_stall_is_not_a_link_loss():
+    """Every link looks silent after the ground station itself stalled: that is judged only after a short
+    grace, once the receive threads had the chance to deliver what queued up."""
+    from flight_fixtures import ScriptedLink
+
+    links = {d: ScriptedLink(f"scripted://{d}") for d in ("a", "b")}
+    session = FlightSession(links, {"a": PURSUER_TEAM, "b": PURSUER_TEAM}, FenceConfig(), quick_flight())
+    for d in session.drones.values():
+        d.status = DroneStatus.FLYING
+    now = time.monotonic()
+    for link in links.values():
+        link.feed(t=now - 0.35)
+    session._last_tick = now - 0.35  # the supervisor did not run for 350 ms either
+    session._tick(now)
+    assert session.stalls == 1 and not session.events_of("link_lost")
+    assert session.statuses() == {"a": DroneStatus.FLYING, "b": DroneStatus.FLYING}
+    links["a"].feed(t=now + 0.01)  # a's telemetry was only queued; b stays silent
+    session._tick(now + 0.02)  # still in the grace period
+    assert not session.events_of("link_lost")
+    session._tick(now + 0.06)
+    assert [e.drone for e in session.events_of("link_lost")] == ["b"]
+    assert session.status("b") is DroneStatus.LOST and ("land",) == links["b"].sent[-1][:1]
+    assert session.status("a") is not DroneStatus.LOST
