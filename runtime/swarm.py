@@ -314,6 +314,17 @@ def _rss_kib() -> int:
     return -1
 
 
+def _check_files(manifest) -> None:
+    from runtime.policy import _FIX, ModelCorrupted, ModelNotFound, _sha256
+    for e in manifest.agents:
+        if not e.file.is_file():
+            raise ModelNotFound(f"no ONNX model at {str(e.file)!r}: {_FIX}")
+        got = _sha256(e.file)
+        if got != e.sha256:
+            raise ModelCorrupted(f"{str(e.file)!r} has sha256 {got[:12]}..., the manifest says {e.sha256[:12]}...: "
+                                 f"the file was damaged or replaced; {_FIX}")
+
+
 def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
     """Run every agent of a models folder against one real-time world for ``cfg.duration_s``; returns the
     metrics (``runtime.metrics.METRIC_KEYS``), the loop timings and the comms counters. Raises
@@ -321,6 +332,7 @@ def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
     from runtime.policy import load_models, read_manifest
     if cfg.processes:
         manifest = read_manifest(models)
+        _check_files(manifest)  # each agent process loads its own model; fail here, with the named error
         policies = None
     else:
         manifest, policies = load_models(models)

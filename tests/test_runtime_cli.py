@@ -66,9 +66,10 @@ def test_bad_models_folder_exits_nonzero_with_the_named_error(models, tmp_path):
     shutil.copytree(models, broken)
     victim = sorted(broken.glob("*.onnx"))[3]
     victim.write_bytes(victim.read_bytes()[:-10] + b"0123456789")
-    r = _cli("run", "--models", str(broken), "--duration", "1")
-    assert r.returncode == 2 and "ModelCorrupted" in r.stderr and victim.name in r.stderr
-    assert "Traceback" not in r.stderr
+    for extra in ([], ["--processes"]):
+        r = _cli("run", "--models", str(broken), "--duration", "1", *extra)
+        assert r.returncode == 2 and "ModelCorrupted" in r.stderr and victim.name in r.stderr
+        assert "Traceback" not in r.stderr
 
 
 def test_bad_arguments_are_refused(models):
