@@ -9,8 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_export.cgen import CSources, dequantized, generate
-from firmware_export.mlp_graph import ActorModel, Dense, read_actor
+from firmware_export.cgen import CSources, generate
+from firmware_export.mlp_graph import ActorModel, CExportError, Dense, read_actor
+from firmware_export.observations import random_observations, recorded_observations
+from firmware_export.quantize import QDense, dequantized, float_layers, quantize_layers
 
 log = logging.getLogger(__name__)
 
@@ -18,6 +20,18 @@ TEMPLATE_DIR = Path(__file__).parent / "templates" / "crazyflie_app"
 """The Crazyflie out-of-tree app; ``install_app`` copies it and adds the generated policy to its ``src/``."""
 STUBS_DIR = Path(__file__).parent / "fw_stubs"
 """Minimal stand-ins for the firmware headers (and a host implementation) so tests can build the app."""
+CALIB_SEED = 1000
+"""Seed of the int8 calibration observations; parity checks use other seeds (0 in ``c_report``), so the
+quantization is measured on observations it never saw."""
+CALIB_OBS = 20_000
+
+
+def calibration_observations(model: ActorModel, n: int = CALIB_OBS, seed: int = CALIB_SEED) -> np.ndarray:
+    """Half uniform in the spec's ranges, half recorded from the simulator, from seeds the parity checks do not use."""
+    if n < 2:
+        raise CExportError(f"--calib-obs {n}: use at least a few thousand calibration observations")
+    return np.concatenate([random_observations(model.spec, model.role, n - n // 2, seed),
+                           recorded_observations(model.spec, model.role, n // 2, seed + 1)])
 
 
 @dataclass(frozen=True)
@@ -28,19 +42,29 @@ class CExport:
     source: Path
     quant: str
     tanh: str
+    weights_in: str
+    qlayers: tuple[QDense, ...]
+    """The layers as the C computes them (int8 rows and scales for ``int8w``)."""
 
 
 def export_c(model_path: str | Path, out_dir: str | Path, quant: str = "float", tanh: str = "fast",
-             spec_toml: str | Path | None = None, role: str | None = None) -> CExport:
+             spec_toml: str | Path | None = None, role: str | None = None, weights_in: str = "ccm",
+             int8_rounding: str = "gptq", calib_obs: int = CALIB_OBS) -> CExport:
     model = read_actor(model_path, spec_toml=spec_toml, role=role)
-    sources = generate(model, quant=quant, tanh=tanh)
+    if quant == "int8w":
+        calib = calibration_observations(model, calib_obs) if int8_rounding == "gptq" else None
+        qlayers = quantize_layers(model.layers, calib, int8_rounding)
+    else:
+        qlayers = float_layers(model.layers)
+    sources = generate(model, quant=quant, tanh=tanh, weights_in=weights_in, qlayers=qlayers)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     header, source = out / "policy.h", out / "policy.c"
     header.write_text(sources.header)
     source.write_text(sources.source)
-    log.info("wrote %s and %s (%s, %d weight bytes)", header, source, quant, sources.weight_bytes)
-    return CExport(model, sources, header, source, quant, tanh)
+    log.info("wrote %s and %s (%s, %d weight bytes, read from %s)", header, source, quant, sources.weight_bytes,
+             weights_in)
+    return CExport(model, sources, header, source, quant, tanh, weights_in, qlayers)
 
 
 def install_app(export: CExport, app_dir: str | Path) -> Path:
@@ -67,4 +91,4 @@ def mlp_forward(layers: tuple[Dense, ...], obs: np.ndarray) -> np.ndarray:
 
 def reference_layers(export: CExport) -> tuple[Dense, ...]:
     """The layers the generated C computes (dequantized for ``int8w``)."""
-    return dequantized(export.model.layers) if export.quant == "int8w" else export.model.layers
+    return dequantized(export.qlayers)

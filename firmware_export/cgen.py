@@ -4,8 +4,10 @@ Layout chosen for the Cortex-M4 (single-issue, 32 single-precision registers, VL
 floats at one cycle each): every dense layer computes ``GROUP`` output neurons at once, so each input value is
 loaded once per group and reused from a register, and the weights of a group are interleaved
 ``[in][GROUP]`` so that the inner loop reads flash strictly sequentially. A final group narrower than
-``GROUP`` (the 2-wide action layer) gets its own kernel. With ``int8w`` the weights are int8 with one float
-scale per output neuron; the products accumulate in float and are scaled once per neuron.
+``GROUP`` (the 2-wide action layer) gets its own kernel. With ``int8w`` the hidden layers' weights are int8 with
+one float scale per output neuron (products accumulate in float, scaled once per neuron) and the output layer
+stays float (``firmware_export.quantize``). All tables live in one struct, read either from flash or from a copy
+in CCM RAM made by ``swarm_policy_init`` (``WEIGHTS_IN``).
 """
 from __future__ import annotations
 
@@ -14,11 +16,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_export.mlp_graph import ActorModel, CExportError, Dense, ModelShapeError
+from firmware_export.mlp_graph import ActorModel, CExportError, ModelShapeError
+from firmware_export.quantize import QDense, float_layers
 
 GROUP = 8
 """Output neurons computed together (8 accumulators, 8 streamed weights and 1 input use 17 of 32 s-registers)."""
 QUANTS = ("float", "int8w")
+WEIGHTS_IN = ("ccm", "flash")
+"""Where the Cortex-M4 reads the tables from: ``ccm`` copies them at ``swarm_policy_init`` from flash into the
+STM32F405's 64 KB core-coupled RAM (zero wait states; the firmware's ``.ccmbss`` section, as its
+``NO_DMA_CCM_SAFE_ZERO_INIT``), ``flash`` reads them in place (5 wait states at 168 MHz on an ART data-cache miss)."""
+CCM_SECTION = ".ccmbss"
 TANHS = ("fast", "libm")
 TANH_FAST_MAX_ERROR = 5e-7
 """Largest |swp_tanhf(x) - tanh(x)| over all float32 x (tests measure it on a dense grid and at the clamp)."""
@@ -50,29 +58,19 @@ def c_ident(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9]", "_", name).upper()
 
 
-def quantize_rows(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Symmetric per-row int8: ``w ~= q * scale[:, None]``, q in [-127, 127]."""
-    amax = np.abs(w).max(axis=1).astype(np.float64)
-    scale = np.where(amax > 0, amax / 127.0, 1.0).astype(np.float32)
-    q = np.clip(np.rint(w / scale[:, None]), -127, 127).astype(np.int8)
-    return q, scale
-
-
-def dequantized(layers: tuple[Dense, ...]) -> tuple[Dense, ...]:
-    """The layers an ``int8w`` export computes, in float (the reference its C must reproduce)."""
-    out = []
-    for d in layers:
-        q, s = quantize_rows(d.weight)
-        out.append(Dense((q.astype(np.float32) * s[:, None]).astype(np.float32), d.bias, d.activation))
-    return tuple(out)
-
-
 # --------------------------------------------------------------------------------------------------
 # header
 
 
-def header_text(model: ActorModel, quant: str, tanh: str) -> str:
+def _scheme(qlayers: tuple[QDense, ...]) -> str:
+    return ", ".join(f"layer {i} {q.weight.shape[1]}->{q.weight.shape[0]} "
+                     f"{'int8 (per-row float scale)' if q.is_int8 else 'float32'}" for i, q in enumerate(qlayers, 1))
+
+
+def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm",
+                qlayers: tuple[QDense, ...] | None = None) -> str:
     spec, role = model.spec, model.role
+    qlayers = float_layers(model.layers) if qlayers is None else qlayers
     lay = spec.layout(role)
     rs = spec.role(role)
     lines = [
@@ -88,6 +86,9 @@ def header_text(model: ActorModel, quant: str, tanh: str) -> str:
         f"#define {PREFIX}_ROLE_IS_EVADER {int(lay.role_group == 'evader')}",
         f'#define {PREFIX}_AGENT_ID "{model.agent_id}"',
         f'#define {PREFIX}_QUANT "{quant}"',
+        f"/* Weights: {_scheme(qlayers)}. */",
+        f'#define {PREFIX}_WEIGHTS_IN "{weights_in}"',
+        f"#define {PREFIX}_WEIGHTS_IN_CCM {int(weights_in == 'ccm')}",
         f"#define {PREFIX}_OBS_DIM {model.obs_dim}",
         f"#define {PREFIX}_ACT_DIM {model.act_dim}",
         "",
@@ -115,6 +116,10 @@ def header_text(model: ActorModel, quant: str, tanh: str) -> str:
         f"#define {SPEC_PREFIX}_N_EVADERS {spec.team.n_evaders}",
         f"#define {SPEC_PREFIX}_N_AGENTS {spec.team.n_agents} /* ordered pursuers, scouts, evaders */",
         "",
+        "/* Call once before the first swarm_policy_act (e.g. in appMain): with WEIGHTS_IN \"ccm\" it copies the",
+        " * weight tables from flash into CCM RAM; with \"flash\" it does nothing. */",
+        "void swarm_policy_init(void);",
+        "",
         "/* One inference: obs laid out as above, act in [-1, 1]^2 (times MAX_SPEED = velocity [m/s], world",
         " * frame). Reentrant; uses about 2 x 64 floats of stack, no heap. */",
         f"void swarm_policy_act(const float obs[{PREFIX}_OBS_DIM], float act[{PREFIX}_ACT_DIM]);",
@@ -130,8 +135,8 @@ def header_text(model: ActorModel, quant: str, tanh: str) -> str:
 
 
 def _kernel(width: int, activation: str, quant: str) -> tuple[str, str]:
-    """Name and text of a kernel computing ``width`` neurons per group."""
-    name = f"swp_dense{width}_{activation}"
+    """Name and text of a kernel computing ``width`` neurons per group (``quant``: "float" or "int8w")."""
+    name = f"swp_dense{width}_{activation}" + ("_i8" if quant == "int8w" else "")
     wt = "int8_t" if quant == "int8w" else "float"
     acc = [f"a{k}" for k in range(width)]
     scale_arg = ", const float *restrict s" if quant == "int8w" else ""
@@ -209,10 +214,10 @@ static float swp_tanhf(float x)
 """
 
 
-def _table(ctype: str, name: str, values, fmt, per_line: int = 8) -> str:
+def _init_list(values, fmt, per_line: int = 8) -> str:
     vals = [fmt(v) for v in values]
     rows = [", ".join(vals[i:i + per_line]) for i in range(0, len(vals), per_line)]
-    return f"static const {ctype} {name}[{len(vals)}] SWARM_POLICY_TABLE_ATTR = {{\n    " + ",\n    ".join(rows) + "\n};\n"
+    return "{\n        " + ",\n        ".join(rows) + "\n    }"
 
 
 def _interleave(w: np.ndarray, width: int) -> np.ndarray:
@@ -221,73 +226,107 @@ def _interleave(w: np.ndarray, width: int) -> np.ndarray:
     return w.reshape(out // width, width, n_in).transpose(0, 2, 1).reshape(-1)
 
 
-def source_text(model: ActorModel, quant: str, tanh: str) -> tuple[str, int]:
+def source_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm",
+                qlayers: tuple[QDense, ...] | None = None) -> tuple[str, int]:
     if quant not in QUANTS:
         raise CExportError(f"unknown quantization {quant!r}: use one of {list(QUANTS)}")
     if tanh not in TANHS:
         raise CExportError(f"unknown tanh {tanh!r}: use one of {list(TANHS)}")
+    if weights_in not in WEIGHTS_IN:
+        raise CExportError(f"unknown weights location {weights_in!r}: use one of {list(WEIGHTS_IN)}")
+    if qlayers is None:
+        if quant == "int8w":
+            raise CExportError("int8w needs the quantized layers (firmware_export.quantize.quantize_layers)")
+        qlayers = float_layers(model.layers)
+    if len(qlayers) != len(model.layers):
+        raise CExportError(f"{len(qlayers)} quantized layers for a model of {len(model.layers)}")
     kernels: dict[str, str] = {}
-    tables: list[str] = []
+    members: list[str] = []
+    inits: list[str] = []
     body: list[str] = []
     weight_bytes = 0
-    widest = max(d.n_out for d in model.layers[:-1]) if len(model.layers) > 1 else 1
+    widest = max(q.weight.shape[0] for q in qlayers[:-1]) if len(qlayers) > 1 else 1
     bufs = ["swp_h0", "swp_h1"]
     used: set[str] = set()
     src = "obs"
-    for li, d in enumerate(model.layers, start=1):
-        last = li == len(model.layers)
+
+    def member(ctype: str, name: str, values, fmt, per_line: int = 8) -> None:
+        members.append(f"    {ctype} {name}[{len(values)}];")
+        inits.append(f"    /* {name} */ " + _init_list(values, fmt, per_line))
+
+    for li, ql in enumerate(qlayers, start=1):
+        n_out, n_in = ql.weight.shape
+        last = li == len(qlayers)
         dst = "act" if last else bufs[li % 2]
         used.add(dst)
-        parts = [(GROUP, d.n_out // GROUP)] if d.n_out >= GROUP else []
-        rem = d.n_out % GROUP
+        parts = [(GROUP, n_out // GROUP)] if n_out >= GROUP else []
+        rem = n_out % GROUP
         if rem:
             parts.append((rem, 1))
+        lq = "int8w" if ql.is_int8 else "float"
         row0 = 0
         for pi, (width, groups) in enumerate(parts):
             rows = slice(row0, row0 + width * groups)
             tag = f"L{li}" + ("" if len(parts) == 1 else "ABCDEFGH"[pi])
-            w, b = d.weight[rows], d.bias[rows]
-            kname, ktext = _kernel(width, d.activation, quant)
+            w, b = ql.weight[rows], ql.bias[rows]
+            kname, ktext = _kernel(width, ql.activation, lq)
             kernels[kname] = ktext
-            if quant == "int8w":
-                q, s = quantize_rows(w)
-                tables.append(_table("int8_t", f"W_{tag}", _interleave(q, width), lambda v: str(int(v)), 16))
-                tables.append(_table("float", f"S_{tag}", s, c_float))
-                weight_bytes += q.size + 4 * s.size
-                args = f"W_{tag}, B_{tag}, S_{tag}"
+            if ql.is_int8:
+                member("int8_t", f"W_{tag}", _interleave(w, width), lambda v: str(int(v)), 16)
+                member("float", f"S_{tag}", ql.scale[rows], c_float)
+                weight_bytes += w.size + 4 * width * groups
+                args = f"SWP_T.W_{tag}, SWP_T.B_{tag}, SWP_T.S_{tag}"
             else:
-                tables.append(_table("float", f"W_{tag}", _interleave(w, width), c_float))
+                member("float", f"W_{tag}", _interleave(w, width), c_float)
                 weight_bytes += 4 * w.size
-                args = f"W_{tag}, B_{tag}"
-            tables.append(_table("float", f"B_{tag}", b, c_float))
+                args = f"SWP_T.W_{tag}, SWP_T.B_{tag}"
+            member("float", f"B_{tag}", b, c_float)
             weight_bytes += 4 * b.size
             off = f" + {row0}" if row0 else ""
-            body.append(f"    {kname}({src}, {d.n_in}, {args}, {groups}, {dst}{off});"
-                        f" /* layer {li}: {d.n_in} -> {d.n_out}, {d.activation} */")
+            body.append(f"    {kname}({src}, {n_in}, {args}, {groups}, {dst}{off});"
+                        f" /* layer {li}: {n_in} -> {n_out}, {ql.activation}, {'int8' if ql.is_int8 else 'float'} */")
             row0 += width * groups
         src = dst
+    dims = " -> ".join([str(model.obs_dim)] + [str(q.weight.shape[0]) for q in qlayers])
     head = [f"/* Generated by `swarm-export c` from {model.source} -- do not edit; re-run the export instead.",
-            f" * {' -> '.join([str(model.obs_dim)] + [str(d.n_out) for d in model.layers])} MLP, weights {quant}.",
+            f" * {dims} MLP, weights {quant}: {_scheme(qlayers)}; tables read from {weights_in}.",
             " * No heap, no stdio" + (", tanhf from libm (link -lm)." if tanh == "libm" else ", no libm.") + " */",
             '#include "policy.h"', ""]
     head += ["/* Cortex-M4F builds (arm-none-eabi-gcc -mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard) use a",
              " * hand-scheduled inner loop; define SWARM_POLICY_NO_ASM to use the portable C everywhere. */",
              "#if defined(__ARM_ARCH_7EM__) && defined(__ARM_FP) && !defined(SWARM_POLICY_NO_ASM)",
-             "#define SWP_M4_ASM 1", "#endif",
-             "/* Define to e.g. __attribute__((section(\".ccmram\"))) to keep the tables out of flash wait states. */",
-             "#ifndef SWARM_POLICY_TABLE_ATTR", "#define SWARM_POLICY_TABLE_ATTR", "#endif", ""]
-    if quant == "int8w":
-        head.insert(-1, "#include <stdint.h>")
+             "#define SWP_M4_ASM 1", "#endif", ""]
+    if any(q.is_int8 for q in qlayers):
+        head.insert(4, "#include <stdint.h>")
     if tanh == "libm":
-        head.insert(-1, "#include <math.h>")
+        head.insert(4, "#include <math.h>")
+    tables = ["/* Every weight, bias and scale, in the order the kernels read them. */",
+              "typedef struct {", *members, "} swp_tables_t;", "",
+              "static const swp_tables_t swp_rom = {", ",\n".join(inits), "};", ""]
+    if weights_in == "ccm":
+        tables += [
+            "/* The working copy in the STM32F405's core-coupled RAM (zero wait states, not reachable by DMA), in the",
+            " * Crazyflie firmware's .ccmbss section (its NO_DMA_CCM_SAFE_ZERO_INIT); filled by swarm_policy_init.",
+            " * Define SWARM_POLICY_CCM_ATTR (empty for plain RAM) to place it elsewhere. */",
+            "#ifndef SWARM_POLICY_CCM_ATTR",
+            "#if defined(__ARM_ARCH_7EM__)",
+            f'#define SWARM_POLICY_CCM_ATTR __attribute__((section("{CCM_SECTION}")))',
+            "#else", "#define SWARM_POLICY_CCM_ATTR", "#endif", "#endif",
+            "static swp_tables_t swp_ram SWARM_POLICY_CCM_ATTR;",
+            "#define SWP_T swp_ram", "",
+            "void swarm_policy_init(void)", "{", "    swp_ram = swp_rom;", "}", ""]
+    else:
+        tables += ["#define SWP_T swp_rom", "", "void swarm_policy_init(void)", "{", "}", ""]
     fn = ["void swarm_policy_act(const float obs[SWARM_POLICY_OBS_DIM], float act[SWARM_POLICY_ACT_DIM])", "{"]
     fn += [f"    float {b}[{widest}];" for b in bufs if b in used]
     fn += body + ["}", ""]
-    tanh_fn = _tanh_text(tanh) + "\n" if any(d.activation == "tanh" for d in model.layers) else ""
-    text = "\n".join(head) + "\n" + "\n".join(tables) + "\n" + tanh_fn + "\n".join(kernels.values()) + "\n".join(fn)
+    tanh_fn = _tanh_text(tanh) + "\n" if any(q.activation == "tanh" for q in qlayers) else ""
+    text = ("\n".join(head) + "\n" + "\n".join(tables) + "\n" + tanh_fn + "\n".join(kernels.values())
+            + "\n".join(fn))
     return text, weight_bytes
 
 
-def generate(model: ActorModel, quant: str = "float", tanh: str = "fast") -> CSources:
-    src, nbytes = source_text(model, quant, tanh)
-    return CSources(header_text(model, quant, tanh), src, nbytes)
+def generate(model: ActorModel, quant: str = "float", tanh: str = "fast", weights_in: str = "ccm",
+             qlayers: tuple[QDense, ...] | None = None) -> CSources:
+    src, nbytes = source_text(model, quant, tanh, weights_in, qlayers)
+    return CSources(header_text(model, quant, tanh, weights_in, qlayers), src, nbytes)

@@ -11,7 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
-from firmware_export.cgen import QUANTS, TANHS
+from firmware_export.cgen import QUANTS, TANHS, WEIGHTS_IN
 from firmware_export.mlp_graph import CExportError
 from runtime.spec import SpecError
 
@@ -19,10 +19,12 @@ from runtime.spec import SpecError
 def _cmd_c(args: argparse.Namespace) -> int:
     from firmware_export.c_export import export_c
 
-    ex = export_c(args.model, args.out, quant=args.quant, tanh=args.tanh, spec_toml=args.spec_toml, role=args.role)
+    ex = export_c(args.model, args.out, quant=args.quant, tanh=args.tanh, spec_toml=args.spec_toml, role=args.role,
+                  weights_in=args.weights_in, int8_rounding=args.int8_rounding, calib_obs=args.calib_obs)
     m = ex.model
     print(f"wrote {ex.header} and {ex.source}: agent {m.agent_id} ({m.role.label}), spec {m.spec.hash}, "
-          f"obs {m.obs_dim} -> act {m.act_dim}, weights {ex.quant} ({ex.sources.weight_bytes} B of tables)")
+          f"obs {m.obs_dim} -> act {m.act_dim}, weights {ex.quant} ({ex.sources.weight_bytes} B of tables, "
+          f"read from {ex.weights_in})")
     if args.app is not None:
         from firmware_export.c_export import install_app
 
@@ -43,7 +45,16 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, type=Path, help="actor ONNX file, e.g. models/role_based/pursuer_0.onnx")
     p.add_argument("--out", required=True, type=Path, help="output directory, e.g. build/c/")
     p.add_argument("--quant", choices=QUANTS, default="float",
-                   help="float: float32 weights; int8w: int8 weights with one float scale per neuron")
+                   help="float: float32 weights; int8w: hidden layers int8 with one float scale per neuron, the "
+                        "output layer float")
+    p.add_argument("--weights-in", choices=WEIGHTS_IN, default="ccm",
+                   help="ccm (default): swarm_policy_init copies the tables to the STM32F405's CCM RAM (zero wait "
+                        "states); flash: read them in place (flash wait states; no CCM used)")
+    p.add_argument("--int8-rounding", choices=("gptq", "nearest"), default="gptq",
+                   help="int8w only: gptq (error compensation on calibration observations) or nearest")
+    p.add_argument("--calib-obs", type=int, default=20_000,
+                   help="int8w with gptq: calibration observations (half random in the spec's ranges, half "
+                        "recorded from the simulator; other seeds than the --report parity check)")
     p.add_argument("--tanh", choices=TANHS, default="fast",
                    help="fast: rational approximation (error <= 5e-7, no libm); libm: tanhf (link -lm)")
     p.add_argument("--spec-toml", type=Path, default=None,

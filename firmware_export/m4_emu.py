@@ -22,22 +22,33 @@ VLDR, VSTR                                      2   (.64: 3)
 VLDM, VSTM, VPUSH, VPOP (N words)               1 + N
 ==============================================  ==========================================================
 
-The model assumes zero-wait-state memory (SRAM or CCM, or flash with the ART accelerator hitting). Weights
-read from the STM32F405's flash at 168 MHz (5 wait states, 128-bit lines, 8-line data cache) can cost up to 5
-more cycles per 16 bytes read; ``flash_penalty_cycles`` gives that bound separately.
+On top of that, flash wait states (``flash_stalls``). SRAM (0x2000_0000) and CCM RAM (0x1000_0000) have zero wait
+states. The STM32F405's flash needs 5 wait states at 168 MHz (RM0090, Table 10); its ART accelerator reads
+128-bit lines and keeps 64 of them in an instruction cache and 8 in a data cache (RM0090, section 3.5.2). The
+model follows every executed instruction's line and every data read of a flash address (a unicorn memory hook)
+through two LRU caches of those sizes, both cold at the start of the call (the rest of the firmware runs
+between two inferences), and charges 5 cycles per miss. What it does not model, and in which direction:
+
+- the instruction prefetch buffer, which fetches the next sequential line while the current one executes and
+  hides part of an instruction miss: not credited (pessimistic for code; the inner loops stay in the cache);
+- data reads get no prefetch on the STM32F4 (the prefetch serves the I-code bus only), so a weight stream from
+  flash misses once per 16 bytes whatever the access pattern: exact for that part under this model;
+- the replacement policy of the ART caches is not documented; LRU is assumed;
+- bus-matrix contention with DMA (SRAM only; CCM and flash reads by the core see none from DMA) and interrupts.
 """
 from __future__ import annotations
 
 import re
 import subprocess
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from firmware_export.mlp_graph import CExportError
-from firmware_export.toolchain import (ARM_GCC, FLASH_BASE, RAM_BASE, SectionSizes, compile_m4_object, link_m4_elf,
-                                       object_sizes)
+from firmware_export.toolchain import (ARM_GCC, CCM_BASE, CCM_BYTES, FLASH_BASE, RAM_BASE, SectionSizes,
+                                       compile_m4_object, link_m4_elf, object_sizes)
 
 CLOCK_HZ = 168_000_000
 """STM32F405 core clock on the Crazyflie 2.x."""
@@ -46,6 +57,8 @@ REFILL = 2
 FLASH_WAIT_STATES = 5
 """STM32F405 flash latency at 168 MHz and 3.3 V (RM0090, Table 10)."""
 FLASH_LINE_BYTES = 16
+ART_ICACHE_LINES = 64
+ART_DCACHE_LINES = 8
 _RETURN = 0x0810_0000
 _OBS_ADDR = RAM_BASE + 0x1000
 _ACT_ADDR = RAM_BASE + 0x2000
@@ -66,12 +79,36 @@ class Instr:
 
 
 @dataclass(frozen=True)
+class FlashStalls:
+    icache_misses: int
+    dcache_misses: int
+    flash_data_reads: int
+    """Data reads (words) of flash addresses: literal pools, and the tables when they are read in place."""
+    ccm_data_reads: int
+    """Data reads (words) of CCM addresses: the tables' working copy with ``--weights-in ccm``."""
+
+    @property
+    def cycles(self) -> int:
+        return FLASH_WAIT_STATES * (self.icache_misses + self.dcache_misses)
+
+
+@dataclass(frozen=True)
 class M4Run:
     act: np.ndarray
     instructions: int
     cycles: int
+    """Zero-wait-state cycles (TRM timing of each executed instruction)."""
     by_class: dict[str, tuple[int, int]]
     """Instruction class -> (executed instructions, cycles)."""
+    stalls: FlashStalls | None = None
+    init_instructions: int = 0
+    init_cycles: int = 0
+    """``swarm_policy_init`` (the copy to CCM), once at start-up, wait states included."""
+
+    @property
+    def total_cycles(self) -> int:
+        """Cycles of one inference with the flash wait states of the ART cache model."""
+        return self.cycles + (self.stalls.cycles if self.stalls is not None else 0)
 
 
 @dataclass(frozen=True)
@@ -80,6 +117,8 @@ class M4Build:
     obj: Path
     sizes: SectionSizes
     entry: int
+    init: int
+    """Address of ``swarm_policy_init``."""
     flash: bytes
     listing: dict[int, Instr]
 
@@ -96,7 +135,8 @@ def build(c_file: Path, work: Path) -> M4Build:
     nm = subprocess.run([tool + "nm", str(elf)], check=True, capture_output=True, text=True).stdout
     syms = {p[2]: int(p[0], 16) for p in (line.split() for line in nm.splitlines()) if len(p) == 3}
     dis = subprocess.run([tool + "objdump", "-d", str(elf)], check=True, capture_output=True, text=True).stdout
-    return M4Build(elf, obj, object_sizes(obj), syms["swarm_policy_act"], flash.read_bytes(), parse_listing(dis))
+    return M4Build(elf, obj, object_sizes(obj), syms["swarm_policy_act"], syms["swarm_policy_init"], flash.read_bytes(),
+                   parse_listing(dis))
 
 
 def parse_listing(objdump: str) -> dict[int, Instr]:
@@ -159,10 +199,57 @@ def instr_cycles(ins: Instr, taken: bool) -> tuple[str, int]:
     return "integer", 1
 
 
+def _lru_misses(lines, size: int) -> int:
+    cache: OrderedDict[int, None] = OrderedDict()
+    misses = 0
+    for line in lines:
+        if line in cache:
+            cache.move_to_end(line)
+            continue
+        misses += 1
+        cache[line] = None
+        if len(cache) > size:
+            cache.popitem(last=False)
+    return misses
+
+
+def flash_stalls(b: M4Build, trace: list[int], reads: list[int]) -> FlashStalls:
+    """The ART cache model of this module's docstring over one call's executed addresses and data reads."""
+    ilines = []
+    for addr in trace:
+        first, last = addr // FLASH_LINE_BYTES, (addr + b.listing[addr].size - 1) // FLASH_LINE_BYTES
+        ilines.append(first)
+        if last != first:
+            ilines.append(last)
+    flash_reads = [a for a in reads if FLASH_BASE <= a < FLASH_BASE + (1 << 20)]
+    ccm_reads = sum(1 for a in reads if CCM_BASE <= a < CCM_BASE + CCM_BYTES)
+    return FlashStalls(_lru_misses(ilines, ART_ICACHE_LINES),
+                       _lru_misses((a // FLASH_LINE_BYTES for a in flash_reads), ART_DCACHE_LINES),
+                       len(flash_reads), ccm_reads)
+
+
+def _count(b: M4Build, trace: list[int], end: int) -> tuple[int, dict[str, list[int]]]:
+    by_class: dict[str, list[int]] = {}
+    total = 0
+    for i, addr in enumerate(trace):
+        ins = b.listing.get(addr)
+        if ins is None:
+            raise EmulatorError(f"executed address {addr:#x} is not in the disassembly of {b.elf}")
+        nxt = trace[i + 1] if i + 1 < len(trace) else end
+        cls, cyc = instr_cycles(ins, taken=nxt != addr + ins.size)
+        slot = by_class.setdefault(cls, [0, 0])
+        slot[0] += 1
+        slot[1] += cyc
+        total += cyc
+    return total, by_class
+
+
 def run(b: M4Build, obs: np.ndarray, act_dim: int = 2, count: bool = True) -> M4Run:
-    """One call of ``swarm_policy_act(obs, act)`` on the emulated Cortex-M4."""
+    """``swarm_policy_init()`` then one ``swarm_policy_act(obs, act)`` on the emulated Cortex-M4 (flash, SRAM
+    and CCM mapped as on the STM32F405)."""
     try:
-        from unicorn import UC_ARCH_ARM, UC_HOOK_CODE, UC_MODE_MCLASS, UC_MODE_THUMB, Uc, UcError
+        from unicorn import (UC_ARCH_ARM, UC_HOOK_CODE, UC_HOOK_MEM_READ, UC_MODE_MCLASS, UC_MODE_THUMB, Uc,
+                             UcError)
         from unicorn import arm_const as ac
     except ImportError:
         raise EmulatorError("the unicorn emulator is not installed: pip install unicorn "
@@ -171,41 +258,41 @@ def run(b: M4Build, obs: np.ndarray, act_dim: int = 2, count: bool = True) -> M4
     uc.ctl_set_cpu_model(ac.UC_CPU_ARM_CORTEX_M4)
     uc.mem_map(FLASH_BASE, 1 << 20)
     uc.mem_map(RAM_BASE, 128 << 10)
+    uc.mem_map(CCM_BASE, CCM_BYTES)
     uc.mem_map(_RETURN, 0x1000)
     uc.mem_write(FLASH_BASE, b.flash)
-    uc.mem_write(_OBS_ADDR, np.ascontiguousarray(obs, dtype=np.float32).tobytes())
-    uc.reg_write(ac.UC_ARM_REG_R0, _OBS_ADDR)
-    uc.reg_write(ac.UC_ARM_REG_R1, _ACT_ADDR)
-    uc.reg_write(ac.UC_ARM_REG_SP, _STACK_TOP)
-    uc.reg_write(ac.UC_ARM_REG_LR, _RETURN | 1)
     trace: list[int] = []
+    reads: list[int] = []
     if count:
         uc.hook_add(UC_HOOK_CODE, lambda _uc, addr, _size, _data: trace.append(addr))
-    try:
-        uc.emu_start(b.entry | 1, _RETURN, count=5_000_000)
-    except UcError as exc:
-        raise EmulatorError(f"the M4 build faulted at {uc.reg_read(ac.UC_ARM_REG_PC):#x}: {exc}") from None
-    if uc.reg_read(ac.UC_ARM_REG_PC) & ~1 != _RETURN:
-        raise EmulatorError("swarm_policy_act did not return within 5,000,000 instructions")
+        uc.hook_add(UC_HOOK_MEM_READ, lambda _uc, _access, addr, _size, _value, _data: reads.append(addr))
+
+    def call(entry: int, r0: int = 0, r1: int = 0) -> None:
+        uc.reg_write(ac.UC_ARM_REG_R0, r0)
+        uc.reg_write(ac.UC_ARM_REG_R1, r1)
+        uc.reg_write(ac.UC_ARM_REG_SP, _STACK_TOP)
+        uc.reg_write(ac.UC_ARM_REG_LR, _RETURN | 1)
+        try:
+            uc.emu_start(entry | 1, _RETURN, count=5_000_000)
+        except UcError as exc:
+            raise EmulatorError(f"the M4 build faulted at {uc.reg_read(ac.UC_ARM_REG_PC):#x}: {exc}") from None
+        if uc.reg_read(ac.UC_ARM_REG_PC) & ~1 != _RETURN:
+            raise EmulatorError("the policy did not return within 5,000,000 instructions")
+
+    call(b.init)
+    init_trace, init_reads = list(trace), list(reads)
+    trace.clear()
+    reads.clear()
+    uc.mem_write(_OBS_ADDR, np.ascontiguousarray(obs, dtype=np.float32).tobytes())
+    call(b.entry, _OBS_ADDR, _ACT_ADDR)
     act = np.frombuffer(bytes(uc.mem_read(_ACT_ADDR, 4 * act_dim)), np.float32).copy()
-    by_class: dict[str, list[int]] = {}
-    total = 0
-    for i, addr in enumerate(trace):
-        ins = b.listing.get(addr)
-        if ins is None:
-            raise EmulatorError(f"executed address {addr:#x} is not in the disassembly of {b.elf}")
-        nxt = trace[i + 1] if i + 1 < len(trace) else _RETURN
-        cls, cyc = instr_cycles(ins, taken=nxt != addr + ins.size)
-        slot = by_class.setdefault(cls, [0, 0])
-        slot[0] += 1
-        slot[1] += cyc
-        total += cyc
-    return M4Run(act, len(trace), total, {k: (v[0], v[1]) for k, v in sorted(by_class.items())})
-
-
-def flash_penalty_cycles(table_bytes: int) -> int:
-    """Upper bound of extra cycles per inference when every weight line comes from flash with wait states."""
-    return FLASH_WAIT_STATES * -(-table_bytes // FLASH_LINE_BYTES)
+    if not count:
+        return M4Run(act, 0, 0, {})
+    total, by_class = _count(b, trace, _RETURN)
+    init_total, _ = _count(b, init_trace, _RETURN)
+    init_stalls = flash_stalls(b, init_trace, init_reads)
+    return M4Run(act, len(trace), total, {k: (v[0], v[1]) for k, v in sorted(by_class.items())},
+                 flash_stalls(b, trace, reads), len(init_trace), init_total + init_stalls.cycles)
 
 
 def micros(cycles: int) -> float:

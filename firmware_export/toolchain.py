@@ -22,16 +22,22 @@ ARM_GCC = "arm-none-eabi-gcc"
 FLASH_BASE = 0x08000000
 """STM32F405 flash and SRAM, as in the Crazyflie 2.x linker script."""
 RAM_BASE = 0x20000000
+CCM_BASE = 0x10000000
+"""The STM32F405's 64 KB core-coupled RAM (data only: the D-bus reaches it, DMA and instruction fetch do not)."""
+CCM_BYTES = 64 << 10
 M4_LINKER_SCRIPT = f"""ENTRY(swarm_policy_act)
 MEMORY {{ FLASH (rx) : ORIGIN = {FLASH_BASE:#x}, LENGTH = 1024K
-         RAM (rwx) : ORIGIN = {RAM_BASE:#x}, LENGTH = 128K }}
+         RAM (rwx) : ORIGIN = {RAM_BASE:#x}, LENGTH = 128K
+         CCMRAM (rw) : ORIGIN = {CCM_BASE:#x}, LENGTH = 64K }}
 SECTIONS {{
   .text : {{ *(.text*) }} > FLASH
   .rodata : {{ *(.rodata*) }} > FLASH
   .data : {{ *(.data*) }} > RAM AT > FLASH
   .bss : {{ *(.bss*) *(COMMON) }} > RAM
+  .ccmbss (NOLOAD) : {{ *(.ccmbss*) }} > CCMRAM
 }}
 """
+"""As the Crazyflie's F405 scripts (tools/make/F405/linker): flash, SRAM, and CCM with a NOLOAD ``.ccmbss``."""
 
 
 class ToolchainError(CExportError):
@@ -82,6 +88,8 @@ class HostPolicy:
         fp = ctypes.POINTER(ctypes.c_float)
         self.fn.argtypes = [fp, fp]
         self.fn.restype = None
+        self.lib.swarm_policy_init.restype = None
+        self.lib.swarm_policy_init()  # tables to their working copy (a no-op with --weights-in flash)
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self._obs = np.zeros(obs_dim, np.float32)
         self._act = np.zeros(act_dim, np.float32)
@@ -134,7 +142,7 @@ def link_m4_elf(objects: list[Path], out: Path) -> Path:
     script = out.with_suffix(".ld")
     script.write_text(M4_LINKER_SCRIPT)
     cmd = [require_arm_gcc(), *M4_FLAGS, "-nostdlib", "-nostartfiles", f"-T{script}", "-Wl,--gc-sections",
-           "-o", str(out), *map(str, objects), "-lgcc"]
+           "-Wl,--undefined=swarm_policy_init", "-o", str(out), *map(str, objects), "-lc", "-lgcc"]
     _run(cmd, "arm-none-eabi-gcc link")
     return out
 
@@ -149,6 +157,8 @@ class SectionSizes:
     """Initialised static RAM (also copied in flash)."""
     bss: int
     """Zeroed static RAM."""
+    ccm: int
+    """Core-coupled RAM (``.ccmbss``: the weight tables' working copy with ``--weights-in ccm``)."""
     stack: int
     """Stack bytes of ``swarm_policy_act`` (gcc -fstack-usage, kernels inlined or not)."""
 
@@ -156,7 +166,7 @@ class SectionSizes:
 def object_sizes(obj: Path) -> SectionSizes:
     """Per-section sizes of a ``compile_m4_object`` output and its stack usage."""
     out = _run([ARM_GCC.replace("gcc", "size"), "-A", str(obj)], "arm-none-eabi-size")
-    sizes = {"text": 0, "rodata": 0, "data": 0, "bss": 0}
+    sizes = {"text": 0, "rodata": 0, "data": 0, "bss": 0, "ccmbss": 0}
     for line in out.splitlines():
         parts = line.split()
         if len(parts) >= 2 and parts[0].startswith(".") and parts[1].isdigit():
@@ -173,4 +183,5 @@ def object_sizes(obj: Path) -> SectionSizes:
         # kernels that were not inlined add their own frames on top
         stack += max((int(l.split("\t")[1]) for l in su.read_text().splitlines()
                       if "swp_dense" in l.split("\t")[0]), default=0)
-    return SectionSizes(stack=stack, **sizes)
+    ccm = sizes.pop("ccmbss")
+    return SectionSizes(stack=stack, ccm=ccm, **sizes)

@@ -87,6 +87,7 @@ void appMain(void)
     bool braking = false;
     uint8_t i;
 
+    swarm_policy_init(); /* with --weights-in ccm: copy the weight tables from flash to CCM RAM */
     roleOk = swarm_world_init(&world, agentIndex);
     if (!roleOk) {
         DEBUG_PRINT("swarm.agent %d is not a %s of spec %s: policy disabled\n", agentIndex, SWARM_POLICY_ROLE,
@@ -94,8 +95,9 @@ void appMain(void)
     }
     memset(&deadman, 0, sizeof(deadman));
     p2pRegisterCB(p2pCallback);
-    DEBUG_PRINT("swarm policy %s (%s, spec %s) at %lu ms\n", SWARM_POLICY_AGENT_ID, SWARM_POLICY_ROLE,
-                SWARM_POLICY_SPEC_HASH, (unsigned long)SWARM_CONTROL_PERIOD_MS);
+    DEBUG_PRINT("swarm policy %s (%s, spec %s, weights %s in %s) at %lu ms\n", SWARM_POLICY_AGENT_ID,
+                SWARM_POLICY_ROLE, SWARM_POLICY_SPEC_HASH, SWARM_POLICY_QUANT, SWARM_POLICY_WEIGHTS_IN,
+                (unsigned long)SWARM_CONTROL_PERIOD_MS);
 
     while (1) {
         uint32_t now, t0;
