@@ -142,8 +142,8 @@ def _run_demo(args: argparse.Namespace) -> int:
     except (DemoError, PolicyError, SpecError, PreflightError, SimError) as exc:
         print(f"swarm-gs demo: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("swarm-gs demo: interrupted; every reachable drone was landed", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"swarm-gs demo: interrupted; {exc or 'landing was not confirmed'}", file=sys.stderr)
         return 130
     print(format_summary(res))
     for flag, path in (("json", args.json), ("log", args.log), ("plot", args.plot)):

@@ -59,6 +59,15 @@ class DemoError(RuntimeError):
     """The demo cannot run; the message says how to fix it."""
 
 
+class DemoInterrupted(KeyboardInterrupt):
+    """Ctrl-C during the demo, after the session landed everyone it could reach."""
+
+    def __init__(self, statuses: dict[str, str], on_ground: int) -> None:
+        self.statuses, self.on_ground = statuses, on_ground
+        summary = ", ".join(f"{d} {s}" for d, s in statuses.items())
+        super().__init__(f"{on_ground} of {len(statuses)} drones on the ground with motors off ({summary})")
+
+
 @dataclass(frozen=True)
 class DemoOptions:
     duration: float = 30.0
@@ -294,33 +303,18 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             session = FlightSession(by_id, teams, fence, flight_cfg,
                                     actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents],
                                     record=recorder)
-            with session:
-                session.preflight(spec_hash=spec.hash, models_spec_hash=manifest.spec.hash)
-                _, pols = load_models(opts.models, spec=spec)
-                policies = {p.agent_id: p for p in pols}
-                session.assign_roles()
-                session.takeoff()
-                pilot = AgentPilot(session, spec, policies, obstacles, on_step=metrics)
-                session.start_mission()
-                t_mission = time.monotonic()
-                sent0 = [link.stats() for link in links]
-                with pilot:
-                    killed = False
-                    while time.monotonic() - t_mission < opts.duration:
-                        if kill is not None and not killed and time.monotonic() - t_mission >= kill[1]:
-                            sims.kill_link(ids.index(kill[0]))
-                            killed = True
-                            result["kill_link_at"] = time.monotonic()
-                        if not session.flying():
-                            break
-                        time.sleep(0.01)
-                t_end = time.monotonic()
-                sent1 = [link.stats() for link in links]
-                session.stop_mission()
+            try:
+                _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result)
+            except KeyboardInterrupt:
+                _wait_on_ground(sims, 4.0)
+                on_ground = sum(1 for i in range(n) if _on_ground(sims.truth(i)))
+                raise DemoInterrupted({d: s.value for d, s in session.statuses().items()}, on_ground) from None
             # session exit landed everyone it can reach; a drone without a link comes down on its watchdog
             _wait_on_ground(sims, 4.0)
-            result.update(_results(opts, spec, session, sims, metrics, pilot, ids, sent0, sent1, t_mission, t_end,
-                                   t_start, t_connected, kill, result.pop("kill_link_at", None), relay))
+            result.update(_results(opts, spec, session, sims, metrics, result.pop("pilot"), ids,
+                                   result.pop("sent0"), result.pop("sent1"), result.pop("t_mission"),
+                                   result.pop("t_end"), t_start, t_connected, kill, result.pop("kill_link_at", None),
+                                   relay))
             result["obstacles"] = [[round(float(v), 3) for v in o] for o in obstacles]
         finally:
             close_links(links)
@@ -336,6 +330,39 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     return result
 
 
+def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacles, metrics, kill, result) -> None:
+    """Preflight to landing (the session lands everyone on the way out, whatever happens)."""
+    manifest_hash = read_manifest(opts.models).spec.hash
+    with session:
+        session.preflight(spec_hash=spec.hash, models_spec_hash=manifest_hash)
+        _, pols = load_models(opts.models, spec=spec)
+        policies = {p.agent_id: p for p in pols}
+        session.assign_roles()
+        session.takeoff()
+        pilot = AgentPilot(session, spec, policies, obstacles, on_step=metrics)
+        session.start_mission()
+        t_mission = time.monotonic()
+        sent0 = [link.stats() for link in links]
+        with pilot:
+            killed = False
+            while time.monotonic() - t_mission < opts.duration:
+                if kill is not None and not killed and time.monotonic() - t_mission >= kill[1]:
+                    sims.kill_link(ids.index(kill[0]))
+                    killed = True
+                    result["kill_link_at"] = time.monotonic()
+                if not session.flying():
+                    break
+                time.sleep(0.01)
+        t_end = time.monotonic()
+        sent1 = [link.stats() for link in links]
+        session.stop_mission()
+    result.update(pilot=pilot, sent0=sent0, sent1=sent1, t_mission=t_mission, t_end=t_end)
+
+
+def _on_ground(truth) -> bool:
+    return truth.position[2] <= LANDED_Z and not truth.motors_on
+
+
 def _wait_on_ground(sims: SimSwarm, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -347,7 +374,7 @@ def _wait_on_ground(sims: SimSwarm, timeout: float) -> None:
 def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: EpisodeMetrics, pilot: AgentPilot,
              ids, sent0, sent1, t_mission, t_end, t_start, t_connected, kill, kill_at, relay) -> dict[str, Any]:
     truth = [sims.truth(i) for i in range(sims.n)]
-    landed = sum(1 for tr in truth if tr.position[2] <= LANDED_Z and not tr.motors_on)
+    landed = sum(1 for tr in truth if _on_ground(tr))
     lat = np.array(session.latencies) * 1e3
     span = max(t_end - t_mission, 1e-9)
     per_link = {}
