@@ -196,7 +196,9 @@ class LossyRelay:
 
 class EpisodeMetrics:
     """``runtime.metrics`` over the flight: one episode per ``spec.timing.episode_steps`` control periods (a
-    shorter last episode counts too)."""
+    shorter last episode counts too). Agents are the actors in spec order at the measured position of the
+    drone flying each; an actor left without a drone stays where its last drone was (and takes no part in
+    contacts)."""
 
     def __init__(self, spec: SwarmSpec, obstacles: np.ndarray) -> None:
         self.spec = spec

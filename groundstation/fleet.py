@@ -225,7 +225,8 @@ def fleet_status(fleet: FleetConfig) -> list[dict[str, Any]]:
                 "state": tel.flight_state.value if tel else "no telemetry",
                 "battery_v": round(tel.battery, 2) if tel and math.isfinite(tel.battery) else None,
                 "position": [round(c, 3) for c in tel.position] if tel else None,
-                "position_variance": max(tel.position_variance) if tel and tel.position_variance else None,
+                "position_variance": float(f"{max(tel.position_variance):.2g}") if tel and tel.position_variance
+                else None,
                 "fence": check_position(fence, tel.position).value if tel else None,
                 "link_quality": round(tel.link_quality, 2) if tel else None,
                 "telemetry_per_s": round(st.telemetry_received / max(time.monotonic() - st.opened_at, 1e-3), 1),
