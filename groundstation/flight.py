@@ -408,8 +408,9 @@ class FlightSession:
             actors = tuple(a for a in self.actors if a.id not in self._retired)
             current = roles_mod.Assignment(actors, {a: d for a, d in self.assignment.by_actor.items()
                                                     if a not in self._retired})
+            role = {a.id: a.role for a in actors}
             n_evaders = sum(1 for a, d in current.by_actor.items()
-                            if current._actor(a).role is Role.EVADER and self.drones[d].status in AIRBORNE)
+                            if role[a] is Role.EVADER and self.drones[d].status in AIRBORNE)
             new, changes = roles_mod.reassign(current, self._drone_infos(), n_evaders,
                                               low_battery=battery_fraction(self.config.low_battery_v))
             now = time.monotonic()

@@ -56,9 +56,9 @@ def flight(tmp_path_factory):
                 session.start_mission()
                 with pilot:
                     time.sleep(FAIL_AT)
-                    by_role = {first._actor(a).role: [] for a in first.by_actor}
-                    for a, d in first.by_actor.items():
-                        by_role[first._actor(a).role].append(d)
+                    by_role = {role: [] for role in Role}
+                    for d in first.by_actor.values():
+                        by_role[first.role_of_drone(d)].append(d)
                     cut, drained = by_role[Role.PURSUER]
                     stale, faulty = by_role[Role.SCOUT]
                     faulty_actor = first.by_drone[faulty]
