@@ -231,9 +231,15 @@ class FlightSession:
     def __init__(self, links: Mapping[str, Link], teams: Mapping[str, str], fence: FenceConfig,
                  config: FlightConfig = FlightConfig(), actors: Iterable[Any] = (),
                  tracker: PositionTracker | None = None,
-                 record: Callable[[dict], None] | None = None) -> None:
+                 record: Callable[[dict], None] | None = None, latency_probe: bool = False) -> None:
         if not links:
             raise ValueError("FlightSession needs at least one link")
+        if latency_probe and not all(link.uri.startswith("udp://") for link in links.values()):
+            raise ValueError("latency_probe puts a timestamp in the yaw rate: simulated drones (udp://) only")
+        self.latency_probe = latency_probe
+        """Simulator benchmark: every velocity setpoint's yaw rate [rad/s] carries the vehicle timestamp (mod
+        2^16 ms) of the measurement it answers, so the simulator can time measurement-to-setpoint at the
+        drone (``SimSwarm(latency_probe=True)``). A real drone would spin: refused for other than udp://."""
         missing = sorted(set(links) - set(teams))
         if missing:
             raise ValueError(f"drone {missing[0]}: no team given: pass teams[{missing[0]!r}] = 'pursuer' or 'evader'")
@@ -558,7 +564,9 @@ class FlightSession:
                 else:
                     return
                 try:
-                    d.link.send_velocity(float(value[0]), float(value[1]), float(value[2]))
+                    tag = float(sample.vehicle_time_ms & 0xFFFF) if self.latency_probe and \
+                        sample.vehicle_time_ms is not None else 0.0
+                    d.link.send_velocity(float(value[0]), float(value[1]), float(value[2]), tag)
                 except LinkError:
                     return
                 sent = time.monotonic()
