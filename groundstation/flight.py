@@ -36,6 +36,12 @@ outside the fence          ``safety.FenceGuard``: hold, then land after ``fence.
 A drone whose link is lost cannot be commanded: its own firmware levels out after 0.5 s without a setpoint
 and cuts the motors after 2 s (a Crazyflie drops from its flight height). The ground station keeps sending
 land commands in case the link comes back.
+
+Two things that would otherwise fake a failure: a ground station that itself did not run for a while (a
+late supervisor tick) makes every link look silent, so silence is judged again only after a short grace;
+and a takeoff or land command lost on the radio is repeated every 50 ms until the vehicle reports its
+planner active (``Telemetry.planner_active``), because a Crazyflie that got the setpoint-stop but not the
+land command cuts its motors 0.2 s later.
 """
 from __future__ import annotations
 
