@@ -108,18 +108,27 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def add_plot(sub: Any) -> None:
     p = sub.add_parser(
-        "plot", help="draw one episode of a policy",
+        "plot", help="draw one episode of a policy, or a training run's curves and an episode",
         description="Runs one episode and draws it: arena, obstacles, pursuers red, scouts blue, targets "
                     "green, trails, sensing disks, the bounded Voronoi cells at the final step and the area "
-                    "covered.")
+                    "covered. With --run RUN: also the run's reward curves per role and min/mean/max distance "
+                    "curves (rewards.png, distances.png, episode.png in --out, default RUN/plots/).")
     _add_config(p)
     _add_policy(p)
     p.add_argument("--seed", type=int, default=0, metavar="S", help="episode seed (default 0)")
-    p.add_argument("--out", required=True, metavar="PNG", help="PNG file to write")
+    p.add_argument("--out", metavar="PATH", help="PNG file to write (a folder with --run; default RUN/plots/)")
+    p.add_argument("--run", metavar="RUN", help="a training run folder: plot its curves and its learned team")
+    p.add_argument("--evader", choices=("learned", "scripted"), default="learned",
+                   help="with --run: the co-trained evaders ('learned', default) or the scripted fleeing ones")
     p.set_defaults(func=cmd_plot)
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    if args.run:
+        from training.learned_eval import cmd_plot_run
+        return cmd_plot_run(args)
+    if not args.out:
+        raise UsageError("--out PNG is required (or give --run RUN to plot a training run)")
     from training.baselines import make_policy
 
     cfg = _load_config(args.config)

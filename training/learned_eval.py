@@ -11,6 +11,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from training.baselines import ClassicalPursuers, FleeingEvaders, Policy, TeamPolicy
 from training.checkpoint import load_actors
 from training.config import ExperimentConfig
@@ -86,11 +88,35 @@ def evaluate_learned(run: str | Path | None = None, models: str | Path | None = 
 def add_learned_arguments(p: Any) -> None:
     p.add_argument("--run", metavar="RUN", help="evaluate the trained actors of a run folder (runs/NAME)")
     p.add_argument("--models", metavar="DIR", help="evaluate an exported ONNX models folder (models/NAME)")
-    p.add_argument("--evader", choices=EVADER_KINDS, default="learned",
-                   help="with --run/--models: the co-trained evader actors ('learned', default) or the scripted "
-                        "fleeing evaders ('scripted')")
+    p.add_argument("--evader", choices=(*EVADER_KINDS, "both"), default="learned",
+                   help="with --run/--models: the co-trained evader actors ('learned', default), the scripted "
+                        "fleeing evaders ('scripted') or both (the JSON then holds one object per kind)")
+    p.add_argument("--md", metavar="PATH", help="with --run/--models: also write the table as Markdown")
     p.add_argument("--no-classical", action="store_true",
                    help="with --run/--models: skip the classical pursuer team's column")
+
+
+def markdown_table(results: dict[str, dict[str, Any]], paper: dict[str, float] | None) -> str:
+    """One Markdown table: a column per result (``ours vs learned`` ...) and the paper's figures."""
+    keys = ["mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage",
+            "collisions_per_episode", "episodes"]
+    cols = list(results)
+    lines = ["| metric | " + " | ".join(cols) + (" | paper |" if paper else " |"),
+             "|---" * (len(cols) + 1 + bool(paper)) + "|"]
+    for k in keys:
+        cells = [_cell(results[c].get(k)) for c in cols]
+        if paper:
+            cells.append(_cell(paper.get(k)))
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _cell(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, int):
+        return str(v)
+    return f"{v:.4f}"
 
 
 def cmd_evaluate_learned(args: Any) -> int:
@@ -99,22 +125,117 @@ def cmd_evaluate_learned(args: Any) -> int:
     from training.cli import UsageError
     from training.evaluate import PAPER, format_table
     from training.checkpoint import CheckpointError
-    try:
-        res = evaluate_learned(args.run, args.models, args.evader, args.episodes, args.seed, args.n_envs,
-                               classical=not args.no_classical, progress=not args.no_progress)
-    except (LearnedModelError, CheckpointError, OSError) as exc:
-        raise UsageError(str(exc)) from None
-    except ValueError as exc:  # runtime.policy.PolicyError and spec errors
-        raise UsageError(str(exc)) from None
-    cols = {f"ours vs {args.evader}": res}
-    if "classical" in res:
-        cols[f"classical vs {args.evader}"] = res["classical"]
-    print(f"{res['config']}: {res['source']} vs {args.evader} evaders, {res['episodes']} episodes, "
-          f"seed {args.seed}, {res['wall_s']:.1f} s")
-    print(format_table(cols, PAPER.get(res["config"])))
+    kinds = list(EVADER_KINDS) if args.evader == "both" else [args.evader]
+    results: dict[str, dict[str, Any]] = {}
+    for kind in kinds:
+        try:
+            results[kind] = evaluate_learned(args.run, args.models, kind, args.episodes, args.seed, args.n_envs,
+                                             classical=not args.no_classical, progress=not args.no_progress)
+        except (LearnedModelError, CheckpointError, OSError) as exc:
+            raise UsageError(str(exc)) from None
+        except ValueError as exc:  # runtime.policy.PolicyError and spec errors
+            raise UsageError(str(exc)) from None
+    cols = {}
+    for kind, res in results.items():
+        cols[f"ours vs {kind}"] = res
+        if "classical" in res:
+            cols[f"classical vs {kind}"] = res["classical"]
+    first = next(iter(results.values()))
+    paper = PAPER.get(first["config"])
+    print(f"{first['config']}: {first['source']} vs {' and '.join(kinds)} evaders, {first['episodes']} episodes "
+          f"each, held-out seed {args.seed}, {sum(r['wall_s'] for r in results.values()):.1f} s")
+    print(format_table(cols, paper))
     if args.json:
         p = Path(args.json)
         p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(res, indent=2, sort_keys=True) + "\n")
+        doc = results[kinds[0]] if len(kinds) == 1 else results
+        p.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
         print(f"wrote {args.json}")
+    if getattr(args, "md", None):
+        p = Path(args.md)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        head = (f"{first['config']}: `{first['source']}`, {first['episodes']} held-out episodes per column "
+                f"(evaluation seed {args.seed}, seed offset {first['eval_seed_offset']})\n\n")
+        p.write_text(head + markdown_table(cols, paper))
+        print(f"wrote {args.md}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ plots
+# `swarm-train plot --run RUN` (training.cli routes here)
+
+_ROLE_COLORS = {"pursuer": "tab:red", "scout": "tab:blue", "evader": "tab:green"}
+
+
+def _read_metrics(run: Path) -> dict[str, list[float]]:
+    import csv
+    path = run / "metrics.csv"
+    if not path.is_file():
+        raise LearnedModelError(f"{run} has no metrics.csv: is it a training run folder?")
+    with path.open() as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        raise LearnedModelError(f"{path} has no rows yet: train longer than train.log_every steps")
+    cols: dict[str, list[float]] = {}
+    for k in rows[0]:
+        vals = [r[k] for r in rows]
+        if all(v != "" for v in vals):
+            cols[k] = [float(v) for v in vals]
+    return cols
+
+
+def plot_training_curves(run: str | Path, out_dir: str | Path) -> list[Path]:
+    """``rewards.png`` (mean reward per step of each role vs frames: the paper's Fig. 3a/4a) and
+    ``distances.png`` (min/mean/max pursuer-target distance vs frames: Fig. 3b/4b) from ``metrics.csv``."""
+    from training.plots import plt  # Agg backend
+    run, out_dir = Path(run), Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    m = _read_metrics(run)
+    x = np.asarray(m["frames"]) / 1e6
+    paths = []
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
+    for role, color in _ROLE_COLORS.items():
+        if f"reward_{role}" in m:
+            ax.plot(x, m[f"reward_{role}"], color=color, label=role)
+    ax.set_xlabel("frames [millions]")
+    ax.set_ylabel("mean reward per agent and step")
+    ax.set_title(f"{run.name}: rewards per role")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    paths.append(out_dir / "rewards.png")
+    fig.savefig(paths[-1])
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
+    for key, label, style in (("max_dist", "max", ":"), ("avg_dist", "mean", "-"), ("min_dist", "min", "--")):
+        ax.plot(x, m[key], "k" + style, label=label)
+    ax.set_xlabel("frames [millions]")
+    ax.set_ylabel("pursuer-target distance [m]")
+    ax.set_title(f"{run.name}: pursuer-target distances (training episodes)")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    paths.append(out_dir / "distances.png")
+    fig.savefig(paths[-1])
+    plt.close(fig)
+    return paths
+
+
+def cmd_plot_run(args: Any) -> int:
+    from training.cli import UsageError
+    from training.checkpoint import CheckpointError
+    from training.plots import plot_episode, record_episode
+    run = Path(args.run)
+    out = Path(args.out) if args.out else run / "plots"
+    try:
+        paths = plot_training_curves(run, out)
+        cfg, learned, _ = load_learned(run=run)
+        evader = getattr(args, "evader", "learned")
+        trace = record_episode(cfg, team(learned, evader), args.seed)
+        paths.append(plot_episode(trace, out / "episode.png",
+                                  f"{cfg.name}: learned team vs {evader} evaders, held-out seed {args.seed}"))
+    except (LearnedModelError, CheckpointError) as exc:
+        raise UsageError(str(exc)) from None
+    for p in paths:
+        print(f"wrote {p}")
     return 0

@@ -18,6 +18,7 @@ actions from the replay sample, as in the original MADDPG.
 """
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from typing import Any, Sequence
@@ -319,8 +320,10 @@ class MADDPG:
         self.critics.load_state_dict(sd["critics"])
         self.actors_tgt.load_state_dict(sd["actors_tgt"])
         self.critics_tgt.load_state_dict(sd["critics_tgt"])
-        self.actor_opt.load_state_dict(sd["actor_opt"])
-        self.critic_opt.load_state_dict(sd["critic_opt"])
+        # torch keeps the given moment tensors (no copy when dtype and device match): copy them, so that a
+        # state dict taken from a live learner is not shared with it
+        self.actor_opt.load_state_dict(copy.deepcopy(sd["actor_opt"]))
+        self.critic_opt.load_state_dict(copy.deepcopy(sd["critic_opt"]))
         self.updates = int(sd["updates"])
 
 

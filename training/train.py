@@ -268,6 +268,7 @@ class Trainer:
         obs = self.env.reset()
         self.returns[:] = 0.0
         interrupted = False
+        restore = _install_stop_handlers()
         try:
             while self.env_step < tc.steps:
                 actions = self._actions(obs)
@@ -304,6 +305,7 @@ class Trainer:
             interrupted = True
             log.warning("interrupted at env step %d: saving a checkpoint (continue with --resume)", self.env_step)
         finally:
+            restore()
             if bar is not None:
                 bar.close()
         self.save_checkpoint()
@@ -365,6 +367,26 @@ def _postfix(row: dict[str, Any]) -> str:
     parts.append(f"dmin={row['min_dist']:.2f} davg={row['avg_dist']:.2f}")
     parts.append(f"{row['fps']:.0f}fps {row['updates_per_s']:.1f}up/s")
     return " ".join(parts)
+
+
+def _install_stop_handlers() -> Any:
+    """Make SIGINT (Ctrl-C) and SIGTERM (``kill PID``) stop training with a checkpoint, also for a run started
+    in the background (where the shell sets SIGINT to be ignored); returns a function restoring the old
+    handlers. Only possible in the main thread; elsewhere a no-op."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def stop(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore() -> None:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+    return restore
 
 
 def _utc_now() -> str:

@@ -1,0 +1,129 @@
+"""training.maddpg: batched actors/critics, replay buffer, per-agent clipping, masked (static) agents."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from runtime.spec import Role
+from training.config import ExperimentConfig, TrainConfig
+from training.maddpg import MADDPG, ActorsPolicy, BatchedMLP, ReplayBuffer, clip_grad_norm_per_agent
+
+
+def _cfg(**train) -> ExperimentConfig:
+    return ExperimentConfig.from_dict({"name": "t", "spec": {"team": {"n_pursuers": 2, "n_scouts": 1,
+                                                                      "n_evaders": 1}},
+                                       "train": {"batch_size": 16, "buffer_size": 64, "threads": 1, **train}})
+
+
+def test_batched_actors_match_the_per_agent_actors_they_export():
+    cfg = _cfg()
+    agent = MADDPG(cfg.spec, cfg.train)
+    actors = agent.to_actors()
+    assert [a.obs_dim for a in actors] == [cfg.spec.obs_dim(r) for r in cfg.spec.roles]
+    obs = torch.randn(5, cfg.spec.n_agents, cfg.spec.max_obs_dim)
+    for i, d in enumerate(agent.obs_dims):  # the env zero-pads each row past the role's obs_dim
+        obs[:, i, d:] = 0
+    batched = agent.act(obs)
+    for i, a in enumerate(actors):
+        torch.testing.assert_close(a(obs[:, i, :a.obs_dim]), batched[:, i], rtol=1e-5, atol=1e-6)
+    # and back: stacking the exported actors gives the same policy
+    pol = ActorsPolicy(actors, cfg.spec.max_obs_dim)
+    np.testing.assert_allclose(pol.act(obs.numpy()), batched.numpy(), rtol=1e-5, atol=1e-6)
+
+
+def test_batched_mlp_is_n_independent_mlps():
+    g = torch.Generator().manual_seed(0)
+    m = BatchedMLP(3, 4, (8, 8), 2, "tanh", g)
+    x = torch.randn(3, 6, 4)
+    y = m(x)
+    for i in range(3):
+        h = x[i]
+        for k in range(3):
+            h = h @ m.weights[k][i] + m.biases[k][i, 0]
+            h = torch.relu(h) if k < 2 else torch.tanh(h)
+        torch.testing.assert_close(h, y[i])
+
+
+def test_replay_buffer_wraps_and_round_trips_newest_first_kept():
+    buf = ReplayBuffer(5, 2, 3)
+    for start in (0, 3, 6):  # 9 transitions into 5 slots
+        obs = torch.arange(start, start + 3, dtype=torch.float32).view(3, 1, 1).expand(3, 2, 3)
+        buf.add(obs, torch.zeros(3, 2, 2), torch.zeros(3, 2), obs + 0.5)
+    assert len(buf) == 5
+    assert sorted(buf.obs[:, 0, 0].tolist()) == [4, 5, 6, 7, 8]
+    sd = buf.state_dict()
+    assert sd["obs"][:, 0, 0].tolist() == [4, 5, 6, 7, 8]  # insertion order
+    small = ReplayBuffer(3, 2, 3)
+    small.load_state_dict(sd)
+    assert sorted(small.obs[:, 0, 0].tolist()) == [6, 7, 8]  # a smaller buffer keeps the newest
+    o, a, r, n = buf.sample(100, torch.Generator().manual_seed(0))
+    assert o.shape == (100, 2, 3) and torch.equal(n, o + 0.5)
+    with pytest.raises(ValueError, match="empty"):
+        ReplayBuffer(4, 1, 1).sample(1, torch.Generator())
+
+
+def test_gradient_clipping_is_per_agent():
+    p = torch.nn.Parameter(torch.zeros(2, 3))
+    p.grad = torch.tensor([[3.0, 4.0, 0.0], [0.3, 0.4, 0.0]])  # norms 5 and 0.5
+    norms = clip_grad_norm_per_agent([p], 1.0)
+    torch.testing.assert_close(norms, torch.tensor([5.0, 0.5]), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(p.grad[0].norm(), torch.tensor(1.0), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(p.grad[1], torch.tensor([0.3, 0.4, 0.0]))  # under the cap: untouched
+
+
+def _fill(agent: MADDPG, cfg: ExperimentConfig, n: int = 64) -> ReplayBuffer:
+    sp = cfg.spec
+    buf = ReplayBuffer(cfg.train.buffer_size, sp.n_agents, sp.max_obs_dim)
+    g = torch.Generator().manual_seed(1)
+    buf.add(torch.randn(n, sp.n_agents, sp.max_obs_dim, generator=g), torch.rand(n, sp.n_agents, 2, generator=g),
+            torch.randn(n, sp.n_agents, generator=g), torch.randn(n, sp.n_agents, sp.max_obs_dim, generator=g))
+    return buf
+
+
+def test_update_trains_every_agent_and_static_evaders_stay_put():
+    for evaders in ("learned", "static"):
+        cfg = _cfg(evaders=evaders)
+        agent = MADDPG(cfg.spec, cfg.train)
+        before = [p.detach().clone() for p in agent.actors.parameters()]
+        buf = _fill(agent, cfg)
+        g = torch.Generator().manual_seed(2)
+        for _ in range(3):
+            losses = agent.update(buf.sample(cfg.train.batch_size, g))
+        assert all(np.isfinite(v) for v in losses.values())
+        assert agent.updates == 3
+        changed = torch.stack([(p.detach() - b).reshape(p.shape[0], -1).abs().sum(1)
+                               for p, b in zip(agent.actors.parameters(), before)]).sum(0)
+        evader = cfg.spec.team.indices(Role.EVADER)[0]
+        assert (changed[:evader] > 0).all()
+        if evaders == "static":
+            assert changed[evader] == 0
+            assert (agent.act(torch.randn(4, cfg.spec.n_agents, cfg.spec.max_obs_dim), noise_std=0.5)[:, evader]
+                    == 0).all()
+        else:
+            assert changed[evader] > 0
+
+
+def test_state_dict_round_trip_gives_identical_updates():
+    cfg = _cfg()
+    a, b = MADDPG(cfg.spec, cfg.train), MADDPG(cfg.spec, dataclasses.replace(cfg.train, seed=99))
+    buf = _fill(a, cfg)
+    a.update(buf.sample(16, torch.Generator().manual_seed(0)))
+    b.load_state_dict(a.state_dict())
+    batch = buf.sample(16, torch.Generator().manual_seed(5))
+    la, lb = a.update(batch), b.update(batch)
+    assert la == lb
+    for p, q in zip(a.actors.parameters(), b.actors.parameters()):
+        assert torch.equal(p, q)
+
+
+def test_train_config_errors_name_the_field():
+    from runtime.spec import SpecError
+    with pytest.raises(SpecError, match="train.batch_size"):
+        TrainConfig(batch_size=10, buffer_size=5)
+    with pytest.raises(SpecError, match="train.device"):
+        TrainConfig(device="tpu")
+    with pytest.raises(SpecError, match="train.noise_std"):
+        TrainConfig(noise_std=-1.0)
