@@ -14,9 +14,10 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# 12 simulated Crazyflies (5 pursuers, 5 scouts, 2 evaders) flown through cflib with the shipped role_based models
 demo: $(STAMP)
-	$(VENV)/bin/swarm-train evaluate --policy classical --episodes 20 --seed 1000 \
-		--json results/demo_classical.json --plot results/demo_classical.png
+	$(VENV)/bin/swarm-gs demo --models models/role_based --duration 30 \
+		--json results/demo.json --log results/demo_flight.jsonl --plot results/demo.png
 
 test: $(STAMP)
 	$(PY) -m pytest -q

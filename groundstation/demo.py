@@ -446,7 +446,7 @@ def plot_flight(path: str, rows: list[dict], fence: FenceConfig, anchors: Anchor
 
     from groundstation.positioning import draw_layout
 
-    colors = {"pursuer": "tab:red", "scout": "tab:green", "evader": "tab:purple", None: "tab:gray"}
+    colors = {"pursuer": "tab:red", "scout": "tab:blue", "evader": "tab:green", None: "tab:gray"}  # as training.plots
     fig, ax = plt.subplots(figsize=(7, 7))
     draw_layout(ax, fence, anchors)
     for d in ids:
