@@ -101,7 +101,8 @@ class TrainConfig:
     """Multiplies every reward in the learner only (the env's rewards stay the paper's) [1]."""
     evaders: str = "learned"
     """"learned": evaders train at the same time (competitive co-training); "static": evaders hold still
-    (their actors are not trained; used for the small learning check)."""
+    (their actors are not trained; used for the small learning check); "scripted": evaders flee as
+    ``training.baselines.FleeingEvaders`` (their actors are not trained)."""
     log_every: int = 100
     """Env steps between two rows of metrics.csv and TensorBoard scalars."""
     checkpoint_every: int = 2_000
@@ -137,8 +138,8 @@ class TrainConfig:
                 raise SpecError(f"train.{name}: must be a non-empty list of positive widths, got {list(widths)!r}")
         if self.batch_size > self.buffer_size:
             raise SpecError(f"train.batch_size ({self.batch_size}) exceeds train.buffer_size ({self.buffer_size})")
-        if self.evaders not in ("learned", "static"):
-            raise SpecError(f"train.evaders: {self.evaders!r} is not one of 'learned', 'static'")
+        if self.evaders not in ("learned", "static", "scripted"):
+            raise SpecError(f"train.evaders: {self.evaders!r} is not one of 'learned', 'static', 'scripted'")
         if not (self.device == "cpu" or self.device == "cuda" or self.device.startswith("cuda:")):
             raise SpecError(f"train.device: {self.device!r} is not 'cpu', 'cuda' or 'cuda:K'")
 

@@ -240,7 +240,7 @@ class MADDPG:
         self.actor_opt = torch.optim.Adam(self.actors.parameters(), lr=cfg.actor_lr)
         self.critic_opt = torch.optim.Adam(self.critics.parameters(), lr=cfg.critic_lr)
         learn = torch.ones(n, device=self.device)
-        if cfg.evaders == "static":
+        if cfg.evaders in ("static", "scripted"):  # scripted evaders' actions come from the trainer
             learn[spec.team.n_team:] = 0.0
         self.learn_mask = learn  # [N] 1 for agents whose actor and critic train
         self._eye = torch.eye(n, device=self.device).view(n, 1, n, 1)

@@ -156,6 +156,10 @@ class Trainer:
         self.spec = cfg.spec
         self.env = PursuitEnv(cfg.spec, cfg.rewards, n_envs=tc.n_envs, seed=tc.seed)
         self.agent = MADDPG(cfg.spec, tc)
+        self.scripted = None
+        if tc.evaders == "scripted":
+            from training.baselines import FleeingEvaders
+            self.scripted = FleeingEvaders()
         self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
         self.sample_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 1)
         self.noise_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 2)
@@ -250,8 +254,13 @@ class Trainer:
         tc = self.tc
         if self.env_step < tc.warmup_steps:
             a = self.np_rng.uniform(-1.0, 1.0, (tc.n_envs, self.spec.n_agents, 2))
-            return a * self.agent.learn_mask.cpu().numpy()[None, :, None]
-        return self.agent.act(obs, self.noise_std(), self.noise_gen).cpu().numpy().astype(np.float64)
+            a = a * self.agent.learn_mask.cpu().numpy()[None, :, None]
+        else:
+            a = self.agent.act(obs, self.noise_std(), self.noise_gen).cpu().numpy().astype(np.float64)
+        if self.scripted is not None:
+            nt = self.spec.team.n_team
+            a[:, nt:] = self.scripted.act(obs, self.env)[:, nt:]
+        return a
 
     def run(self, progress: bool = True) -> TrainResult:
         tc = self.tc

@@ -1,0 +1,88 @@
+"""``swarm-train sweep``: the sweep file's errors, a tiny sweep on local processes, and (slow) on local Ray."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from runtime.spec import SpecError
+from training.sweep import SweepConfig, job_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _sweep_file(tmp_path: Path, extra: str = "", n_pursuers: str = "[1, 2]") -> Path:
+    p = tmp_path / "sweep.toml"
+    p.write_text(f"""base = "{ROOT / 'configs' / 'multi_target.toml'}"
+n_pursuers = {n_pursuers}
+seeds = [0]
+out = "{tmp_path / 'runs'}"
+eval_episodes = 2
+{extra}
+[train]
+steps = 40
+n_envs = 2
+batch_size = 16
+warmup_steps = 10
+log_every = 20
+checkpoint_every = 1000
+threads = 1
+""")
+    return p
+
+
+def test_job_configs_change_only_the_pursuer_count_and_seed(tmp_path):
+    sweep = SweepConfig.from_toml(_sweep_file(tmp_path, n_pursuers="[2, 6]"))
+    assert sweep.jobs() == [(2, 0), (6, 0)]
+    base = job_config(sweep, 2, 0)
+    six = job_config(sweep, 6, 7)
+    assert base.spec.team.n_pursuers == 2 and six.spec.team.n_pursuers == 6
+    assert six.spec.team.n_evaders == 2 and six.spec.team.n_scouts == 0
+    assert six.train.seed == 7 and six.train.steps == 40 and six.name == "multi_target_np6"
+
+
+@pytest.mark.parametrize("extra, n_p, field", [("", "[0, 2]", "n_pursuers"),
+                                               ("eval_evader = \"smart\"", "[2]", "eval_evader"),
+                                               ("colour = 1", "[2]", "colour")])
+def test_sweep_file_errors_name_the_field(tmp_path, extra, n_p, field):
+    with pytest.raises(SpecError, match=field):
+        SweepConfig.from_toml(_sweep_file(tmp_path, extra, n_p))
+
+
+def test_unknown_train_field_is_named(tmp_path):
+    p = _sweep_file(tmp_path)
+    p.write_text(p.read_text() + "learning_rate = 0.1\n")
+    with pytest.raises(SpecError, match="train.learning_rate"):
+        SweepConfig.from_toml(p)
+
+
+def test_tiny_sweep_on_local_processes(tmp_path):
+    p = _sweep_file(tmp_path)
+    r = subprocess.run([sys.executable, "-c", "import sys; from training.cli import main; sys.exit(main())",
+                        "sweep", "--config", str(p), "--workers", "2", "--json", str(tmp_path / "s.json")],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "s.json").read_text())
+    assert [row["n_pursuers"] for row in doc["rows"]] == [1, 2]
+    for row in doc["rows"]:
+        assert row["env_steps"] == [40] and row["mean_min_dist"] > 0 and row["classical_mean_min_dist"] > 0
+    assert doc["rows"][1]["paper_mean_min_dist"] == 0.6307  # Table I, n_p = 2
+    assert (tmp_path / "runs" / "np2_s0" / "actors.pt").is_file()
+    assert (tmp_path / "s.md").read_text().count("\n| ") == 3
+    assert "| 2 |" in r.stdout
+
+
+@pytest.mark.slow
+def test_tiny_sweep_on_a_local_ray_instance(tmp_path):
+    pytest.importorskip("ray")
+    p = _sweep_file(tmp_path, n_pursuers="[2]")
+    r = subprocess.run([sys.executable, "-c", "import sys; from training.cli import main; sys.exit(main())",
+                        "sweep", "--config", str(p), "--ray", "local"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "runs" / "sweep.json").read_text())
+    assert [row["n_pursuers"] for row in doc["rows"]] == [2]
+    assert "on Ray at local" in r.stdout
