@@ -102,7 +102,8 @@ def format_run(res: dict) -> str:
               f"  state-to-action p50 {res['state_to_action_p50_us']:.0f} us  p99 {res['state_to_action_p99_us']:.0f} us"
               f"  max {res['state_to_action_max_us']:.0f} us",
               f"  deadline misses {res['deadline_misses']} (skipped ticks {res['skipped_ticks']}), "
-              f"faults {res['agent_faults']}, waiting for neighbours {res['waiting_ticks']} ticks",
+              f"faults {res['agent_faults']}, waiting for neighbours {res['waiting_ticks']} ticks, observation "
+              f"unchanged (encoder skipped) {res['reused_observations']} ticks",
               "  messages " + ", ".join(f"{k} {v}" for k, v in res["comms"].items() if v)]
     if res.get("agents_cpu_s") is not None:
         lines.append(f"  agents' CPU time {res['agents_cpu_s']} s; host load average {res['host_load_avg_1min'][0]} at "

@@ -445,6 +445,7 @@ def _summarize(spec: SwarmSpec, cfg: RunConfig, world: dict, agents: list[dict],
         "state_to_action_max_us": float(sta.max() * 1e6) if sta.size else float("nan"),
         "deadline_misses": tot("deadline_misses"), "skipped_ticks": tot("skipped"), "agent_ticks": tot("ticks"),
         "agent_faults": tot("faults"), "waiting_ticks": tot("waiting"), "no_state_ticks": tot("no_state"),
+        "reused_observations": tot("reused"),
         "comms": comms.as_dict(),
         "faults_by_agent": {spec.team.agent_ids()[r["index"]]: r["stats"]["last_fault"]
                             for r in agents if r["stats"]["faults"]},

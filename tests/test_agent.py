@@ -225,3 +225,26 @@ def test_start_twice_is_refused_and_stop_is_prompt(full):
     assert calls.wait(2.0)
     t = time.monotonic()
     assert a.stop() and time.monotonic() - t < 0.2
+
+
+def test_an_unchanged_state_reuses_the_observation_and_a_changed_one_rebuilds_it(full):
+    manifest, policies = full
+    spec = manifest.spec
+    env = PursuitEnv(spec, n_envs=1, seed=4)
+    obs = env.reset()
+    s = env.state
+    board = WorldBoard(spec)
+    board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], 0.0, 0)
+    agents = make_agents(manifest, policies, board, AgentConfig(broadcast_period_s=0.0))
+    two_rounds(agents)
+    for a in agents:
+        a.prepare()  # same state, nothing new heard: the encoder is skipped
+    for i, a in enumerate(agents):
+        assert a.stats.reused == 1
+        np.testing.assert_array_equal(a.obs, obs[0, i, :spec.obs_dim(spec.roles[i])])
+    obs, *_ = env.step(np.full((1, spec.n_agents, 2), 0.5))
+    board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], float(env.time_s()[0]), 0)
+    two_rounds(agents)
+    for i, a in enumerate(agents):
+        assert a.stats.reused == 1  # the state moved, then the teammates' messages: rebuilt both times
+        np.testing.assert_array_equal(a.obs, obs[0, i, :spec.obs_dim(spec.roles[i])])
