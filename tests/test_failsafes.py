@@ -72,6 +72,8 @@ def flight(tmp_path_factory):
                     out["stale_at"] = time.monotonic()
                     pilot.set_policy(faulty_actor, OnnxPolicy(nan_models / f"{faulty_actor}.onnx", spec=spec))
                     time.sleep(2.5)
+                    # a loaded machine may still be bringing the drained drone down: give it time, not a pass
+                    wait_until(lambda: session.statuses()[drained] is not DroneStatus.LANDING, 5.0)
                     out["statuses_in_flight"] = session.statuses()
                     out["roles_in_flight"] = dict(session.assignment.by_drone)
                     out["truth_in_flight"] = {d: sims.truth(i) for i, d in enumerate(ids)}
