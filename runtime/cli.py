@@ -75,6 +75,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="world and channel seed")
     p.add_argument("--no-stagger", action="store_true", help="all agents tick at the same instant")
     p.add_argument("--no-warm", action="store_true", help="no warm-up inference before the tick")
+    p.add_argument("--no-reuse", action="store_true",
+                   help="rebuild the observation every tick even when its inputs did not change")
 
 
 def _run_config(args: argparse.Namespace, duration: float, loss: float, latency: float):
@@ -82,7 +84,7 @@ def _run_config(args: argparse.Namespace, duration: float, loss: float, latency:
     comms = CommConfig(latency_s=latency, jitter_s=args.jitter, loss=loss, bandwidth_bps=args.bandwidth,
                        comm_range=args.comm_range, seed=args.seed)
     return RunConfig(duration_s=duration, rate_hz=args.rate, comms=comms, processes=args.processes, seed=args.seed,
-                     stagger=not args.no_stagger, warm=not args.no_warm)
+                     stagger=not args.no_stagger, warm=not args.no_warm, reuse_observation=not args.no_reuse)
 
 
 def format_run(res: dict) -> str:

@@ -253,6 +253,8 @@ class RunConfig:
     lead_s: float | None = None
     """Preparation lead before each tick [s]; None: min(2 ms, a quarter period)."""
     warm: bool = True
+    reuse_observation: bool = True
+    """Skip the encoder when a drone's inputs have not changed (``AgentConfig.reuse_observation``)."""
     switch_interval_s: float | None = 1e-4
     """``sys.setswitchinterval`` for the agents' process (threads mode): how long a waking agent can wait
     for another thread's interpreter lock; None keeps Python's 5 ms."""
@@ -271,6 +273,7 @@ def _agent_config(spec: SwarmSpec, cfg: RunConfig, index: int) -> AgentConfig:
     phase = staggered(spec.n_agents, period)[index] if cfg.stagger else 0.0
     lead = cfg.lead_s if cfg.lead_s is not None else min(0.002, period / 4)
     return AgentConfig(rate_hz=1.0 / period, phase_s=phase, lead_s=lead, warm=cfg.warm,
+                       reuse_observation=cfg.reuse_observation,
                        record=max(16, int(cfg.duration_s / period) + 16))
 
 
@@ -453,7 +456,8 @@ def _summarize(spec: SwarmSpec, cfg: RunConfig, world: dict, agents: list[dict],
         "config": {"duration_s": cfg.duration_s, "rate_hz": cfg.rate_hz or 1.0 / spec.timing.control_period,
                    "processes": cfg.processes, "loss": cfg.comms.loss, "latency_s": cfg.comms.latency_s,
                    "bandwidth_bps": cfg.comms.bandwidth_bps, "comm_range": cfg.comms.range_for(spec),
-                   "seed": cfg.seed, "stagger": cfg.stagger, "warm": cfg.warm, "agents": spec.n_agents,
+                   "seed": cfg.seed, "stagger": cfg.stagger, "warm": cfg.warm,
+                   "reuse_observation": cfg.reuse_observation, "agents": spec.n_agents,
                    "spec_hash": spec.hash, "observability": spec.sensing.observability,
                    "cpus": os.cpu_count()},
     })
