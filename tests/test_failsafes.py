@@ -74,6 +74,8 @@ def flight(tmp_path_factory):
                     time.sleep(2.5)
                     # a loaded machine may still be bringing the drained drone down: give it time, not a pass
                     wait_until(lambda: session.statuses()[drained] is not DroneStatus.LANDING, 5.0)
+                    # and the simulator may need a few more ticks to report the touchdown (motors idle)
+                    wait_until(lambda: all(on_ground(sims.truth(ids.index(x))) for x in (drained, stale, faulty)), 3.0)
                     out["statuses_in_flight"] = session.statuses()
                     out["roles_in_flight"] = dict(session.assignment.by_drone)
                     out["truth_in_flight"] = {d: sims.truth(i) for i, d in enumerate(ids)}
