@@ -127,3 +127,20 @@ def test_train_config_errors_name_the_field():
         TrainConfig(device="tpu")
     with pytest.raises(SpecError, match="train.noise_std"):
         TrainConfig(noise_std=-1.0)
+
+
+def test_scripted_evaders_act_in_training_but_do_not_learn(tmp_path):
+    from training.train import Trainer
+    cfg = _cfg(evaders="scripted", steps=40, n_envs=2, warmup_steps=10, log_every=20, checkpoint_every=1000,
+               buffer_size=200,
+               checkpoint_buffer=False)
+    tr = Trainer(cfg, tmp_path / "run")
+    before = [p.detach().clone() for p in tr.agent.actors.parameters()]
+    tr.run(progress=False)
+    ev = cfg.spec.team.indices(Role.EVADER)[0]
+    n = len(tr.buffer)
+    assert n == 80 and tr.agent.updates > 0
+    assert tr.buffer.act[:n, ev].abs().sum() > 0  # the fleeing evaders moved, and the critics saw it
+    for p, b in zip(tr.agent.actors.parameters(), before):
+        assert torch.equal(p[ev], b[ev])  # their actor did not train
+        assert not torch.equal(p[0], b[0])

@@ -153,23 +153,35 @@ def test_plot_run_draws_curves_and_a_snapshot(tiny_run, tmp_path):
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def in_process(capsys, *args: str) -> tuple[int, str, str]:
+    """``swarm-train ARGS`` in this interpreter (cheaper than a subprocess): exit status, stdout, stderr."""
+    from training.cli import main
+    try:
+        rc = main(list(args))
+    except SystemExit as exc:  # argparse's own usage errors
+        rc = exc.code
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
 @pytest.mark.parametrize("line, field", [("update_every = 0", "train.update_every"),
                                          ("evaders = \"sleepy\"", "train.evaders"),
                                          ("learning_rate = 0.1", "learning_rate"),
                                          ("gamma = 1.5", "train.gamma")])
-def test_config_errors_name_the_field(tmp_path, line, field):
+def test_config_errors_name_the_field(tmp_path, capsys, line, field):
     cfg = tmp_path / "bad.toml"
     cfg.write_text(TINY + line + "\n")
-    r = swarm_train("train", "--config", str(cfg), "--out", str(tmp_path / "run"), "--no-progress")
-    assert r.returncode == 2
-    assert field in r.stderr and "Traceback" not in r.stderr
+    rc, _, err = in_process(capsys, "train", "--config", str(cfg), "--out", str(tmp_path / "run"), "--no-progress")
+    assert rc == 2
+    assert field in err and "Traceback" not in err
     assert not (tmp_path / "run" / "checkpoints").exists()
 
 
-def test_run_folder_errors_say_what_to_do(tmp_path, tiny_run):
-    r = swarm_train("train", "--out", str(tmp_path / "nothing"), "--resume")
-    assert r.returncode == 2 and "nothing to resume" in r.stderr
-    r = swarm_train("train", "--config", str(ROOT / "configs" / "multi_target.toml"), "--out", str(tiny_run))
-    assert r.returncode == 2 and "--resume" in r.stderr
-    r = swarm_train("evaluate", "--run", str(tmp_path / "nothing"), "--episodes", "2")
-    assert r.returncode == 2 and "not a training run" in r.stderr
+def test_run_folder_errors_say_what_to_do(tmp_path, capsys, tiny_run):
+    rc, _, err = in_process(capsys, "train", "--out", str(tmp_path / "nothing"), "--resume")
+    assert rc == 2 and "nothing to resume" in err
+    rc, _, err = in_process(capsys, "train", "--config", str(ROOT / "configs" / "multi_target.toml"), "--out",
+                            str(tiny_run))
+    assert rc == 2 and "--resume" in err
+    rc, _, err = in_process(capsys, "evaluate", "--run", str(tmp_path / "nothing"), "--episodes", "2")
+    assert rc == 2 and "not a training run" in err
