@@ -1,6 +1,6 @@
 import numpy as np
 
-from runtime.observation import encode_observations, new_knowledge, update_knowledge
+from runtime.observation import SIGHTING, encode_observations, new_knowledge, update_knowledge
 from runtime.spec import Role, SwarmSpec
 from runtime.world import World
 
@@ -74,3 +74,96 @@ def test_single_observer_equals_batch_row():
     for i in (0, 7, 11):
         one = _obs(spec, w, k, observers=[i])
         assert np.array_equal(one[:, 0], full[:, i])
+
+
+# -- the per-drone fast path: runtime.observation.encode_one equals encode_observations bit for bit -----------
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from runtime.observation import OneObserverEncoder, encode_one  # noqa: E402
+
+_CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+@st.composite
+def _specs(draw: st.DrawFn) -> SwarmSpec:
+    """The shipped multi_target and role_based specs, and random team sizes, slot counts and ranges."""
+    obsv = draw(st.sampled_from(["full", "partial"]))
+    sensing = {"observability": obsv}
+    which = draw(st.sampled_from(["multi_target", "role_based", "random"]))
+    if which != "random":
+        base = SwarmSpec.from_toml(_CONFIGS / f"{which}.toml").to_dict()
+        base["sensing"] = {**base["sensing"], **sensing}
+        return SwarmSpec.from_dict(base)
+    n_p, n_s = draw(st.integers(0, 4)), draw(st.integers(0, 4))
+    if n_p + n_s == 0:
+        n_p = 1
+    sensing.update(sensing_range=draw(st.sampled_from([0.5, 1.0, 2.5])), comm_range=draw(st.sampled_from([1.0, 2.0])),
+                   target_memory=draw(st.sampled_from([0.5, 3.0])),
+                   n_obstacles_observed=draw(st.integers(0, 4)), n_teammates_observed=draw(st.integers(0, 6)),
+                   n_threats_observed=draw(st.integers(0, 6)))
+    return SwarmSpec.from_dict({"team": {"n_pursuers": n_p, "n_scouts": n_s, "n_evaders": draw(st.integers(1, 3))},
+                                "arena": {"n_obstacles": draw(st.integers(0, 4))}, "sensing": sensing})
+
+
+def _state(spec: SwarmSpec, seed: int, grid: bool, far: int, nan: bool):
+    """Positions on a 0.25 m grid (exact distance ties) or continuous; ``far`` agents 1 km away; sightings fresh,
+    old, exactly ``target_memory`` old, never seen, with stale numbers left in unknown rows; random visibility."""
+    rng = np.random.default_rng(seed)
+    n, k, nt, e = spec.n_agents, spec.arena.n_obstacles, spec.team.n_team, spec.team.n_evaders
+    pos = rng.integers(-8, 9, (n, 2)) * 0.25 if grid else rng.uniform(-3, 3, (n, 2))
+    pos[rng.permutation(n)[:far]] += 1000.0
+    vel = rng.uniform(-1.3, 1.3, (n, 2))
+    if nan:
+        pos[rng.integers(n), rng.integers(2)] = np.nan
+    opos = rng.integers(-8, 9, (k, 2)) * 0.25 if grid else rng.uniform(-3, 3, (k, 2))
+    orad = rng.choice([0.25, 0.45], k) if grid else rng.uniform(0.25, 0.45, k)
+    t = 5.0
+    mem = spec.sensing.target_memory
+    kn = rng.uniform(-3, 3, (1, nt, e, SIGHTING))
+    kn[..., 4] = rng.choice([t, t - 0.1, t - mem, t - mem - 1.0, -np.inf], (1, nt, e))
+    visible = rng.random((1, n, n)) < 0.6
+    return pos[None], vel[None], opos[None], orad[None], kn, t, visible
+
+
+@settings(max_examples=250, deadline=None)
+@given(spec=_specs(), seed=st.integers(0, 2 ** 32 - 1), grid=st.booleans(), far=st.integers(0, 3),
+       use_visible=st.booleans(), nan=st.sampled_from([False] * 7 + [True]))
+def test_encode_one_equals_encode_observations_bitwise(spec, seed, grid, far, use_visible, nan):
+    pos, vel, opos, orad, kn, t, visible = _state(spec, seed, grid, far, nan)
+    vis = visible if use_visible else None
+    want = encode_observations(spec, pos, vel, opos, orad, kn, t, visible=vis)
+    out = np.full(spec.max_obs_dim, 7.0)  # stale contents must be overwritten, the padding zeroed
+    for i in range(spec.n_agents):
+        got = encode_one(spec, pos[0], vel[0], opos[0], orad[0], kn[0], t, i,
+                         visible=None if vis is None else visible[0, i].copy(), out=out)
+        assert got is out
+        if nan:  # NaN payloads may differ between numpy's vector loops and scalar code: compare as values
+            np.testing.assert_array_equal(got, want[0, i], err_msg=f"observer {i}")
+        else:
+            np.testing.assert_array_equal(got.view(np.int64), want[0, i].view(np.int64), err_msg=f"observer {i}")
+
+
+def test_encode_one_reuses_its_encoder_and_checks_its_inputs():
+    spec = SwarmSpec()
+    w = World(spec, 1, seed=6)
+    w.reset()
+    s = w.state
+    k = update_knowledge(spec, new_knowledge(spec, 1), s.pos, s.vel, 0.3)
+    enc = OneObserverEncoder(spec, 11)
+    out = np.zeros(spec.max_obs_dim)
+    enc(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], k[0], 0.3, None, out)
+    assert np.array_equal(out, _obs(spec, w, k, observers=[11])[0, 0])
+    with pytest.raises(ValueError, match="observer: agent index 12"):
+        OneObserverEncoder(spec, 12)
+    with pytest.raises(ValueError, match=r"pos: expected a C-contiguous float64 array of shape \(12, 2\)"):
+        encode_one(spec, s.pos, s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], k[0], 0.3, 0)
+    with pytest.raises(ValueError, match="knowledge: .*shape"):
+        encode_one(spec, s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], k, 0.3, 0)
+    with pytest.raises(ValueError, match="visible: .*bool"):
+        encode_one(spec, s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], k[0], 0.3, 0,
+                   visible=np.ones(12))
