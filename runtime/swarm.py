@@ -29,6 +29,7 @@ import numpy as np
 
 from runtime.agent import Agent, AgentConfig, Perception, staggered
 from runtime.comms import CommConfig, CommStats, InProcessBus, Radio, UdpTransport, free_udp_ports
+from runtime.observation import OneObserverEncoder
 from runtime.spec import SpecError, SwarmSpec
 
 log = logging.getLogger(__name__)
@@ -255,6 +256,9 @@ class RunConfig:
     warm: bool = True
     reuse_observation: bool = True
     """Skip the encoder when a drone's inputs have not changed (``AgentConfig.reuse_observation``)."""
+    fast_encoder: bool = True
+    """Build observations with the one-observer numba encoder (``AgentConfig.fast_encoder``); False: the batched
+    training encoder with B = 1 (the reference, ~0.4 ms per build)."""
     switch_interval_s: float | None = 1e-4
     """``sys.setswitchinterval`` for the agents' process (threads mode): how long a waking agent can wait
     for another thread's interpreter lock; None keeps Python's 5 ms."""
@@ -273,7 +277,7 @@ def _agent_config(spec: SwarmSpec, cfg: RunConfig, index: int) -> AgentConfig:
     phase = staggered(spec.n_agents, period)[index] if cfg.stagger else 0.0
     lead = cfg.lead_s if cfg.lead_s is not None else min(0.002, period / 4)
     return AgentConfig(rate_hz=1.0 / period, phase_s=phase, lead_s=lead, warm=cfg.warm,
-                       reuse_observation=cfg.reuse_observation,
+                       reuse_observation=cfg.reuse_observation, fast_encoder=cfg.fast_encoder,
                        record=max(16, int(cfg.duration_s / period) + 16))
 
 
@@ -341,6 +345,8 @@ def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
         manifest, policies = load_models(models)
     spec = manifest.spec
     n = spec.n_agents
+    if cfg.fast_encoder:  # numba's compile or cache load (0.5-4 s), before the clock and the CPU count start
+        OneObserverEncoder(spec, 0).compile()
     board = WorldBoard(spec, shared=True)
     results: "mp.Queue" = _CTX.Queue()
     procs: list[mp.process.BaseProcess] = []
