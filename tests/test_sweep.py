@@ -75,7 +75,6 @@ def test_tiny_sweep_on_local_processes(tmp_path):
     assert "| 2 |" in r.stdout
 
 
-@pytest.mark.slow
 def test_tiny_sweep_on_a_local_ray_instance(tmp_path):
     pytest.importorskip("ray")
     p = _sweep_file(tmp_path, n_pursuers="[2]")
