@@ -109,8 +109,9 @@ class AgentConfig:
     warm: bool = True
     """Run the actor once during the preparation (warm-up) so that the call at the tick is cache-hot."""
     reuse_observation: bool = True
-    """With ``fast_encoder=False`` (the fast encoder costs less than this comparison): skip the encoder when every input it reads for this drone (belief positions and velocities, visibility,
-    own sightings, obstacles, state timestamp) equals the last build's: the observation is then unchanged.
+    """With ``fast_encoder=False`` (the fast encoder costs less than this comparison): skip the encoder when
+    every input it reads for this drone (belief positions and velocities, visibility, own sightings,
+    obstacles, state timestamp) equals the last build's: the observation is then unchanged.
     A control rate above the state's update rate (100 Hz on a 10 Hz world, or on 50 Hz telemetry) hits this."""
     fast_encoder: bool = True
     """Build the observation with ``runtime.observation.OneObserverEncoder`` (numba, bit-identical to the training

@@ -76,7 +76,11 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-stagger", action="store_true", help="all agents tick at the same instant")
     p.add_argument("--no-warm", action="store_true", help="no warm-up inference before the tick")
     p.add_argument("--no-reuse", action="store_true",
-                   help="rebuild the observation every tick even when its inputs did not change")
+                   help="with --training-encoder: rebuild the observation every tick even when its inputs did not "
+                        "change")
+    p.add_argument("--training-encoder", action="store_true",
+                   help="build observations with the batched training encoder at B = 1 (the reference, ~0.4 ms) "
+                        "instead of its bit-identical one-observer numba twin")
 
 
 def _run_config(args: argparse.Namespace, duration: float, loss: float, latency: float):
@@ -84,7 +88,8 @@ def _run_config(args: argparse.Namespace, duration: float, loss: float, latency:
     comms = CommConfig(latency_s=latency, jitter_s=args.jitter, loss=loss, bandwidth_bps=args.bandwidth,
                        comm_range=args.comm_range, seed=args.seed)
     return RunConfig(duration_s=duration, rate_hz=args.rate, comms=comms, processes=args.processes, seed=args.seed,
-                     stagger=not args.no_stagger, warm=not args.no_warm, reuse_observation=not args.no_reuse)
+                     stagger=not args.no_stagger, warm=not args.no_warm, reuse_observation=not args.no_reuse,
+                     fast_encoder=not args.training_encoder)
 
 
 def format_run(res: dict) -> str:

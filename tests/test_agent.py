@@ -261,7 +261,8 @@ def test_fast_and_reference_encoders_give_the_same_observations_and_actions(part
     env.reset()
     s = env.state
     boards = [WorldBoard(spec), WorldBoard(spec)]
-    swarms = [make_agents(manifest, policies, b, AgentConfig(fast_encoder=fast)) for b, fast in zip(boards, (True, False))]
+    swarms = [make_agents(manifest, policies, b, AgentConfig(fast_encoder=fast))
+              for b, fast in zip(boards, (True, False))]
     assert swarms[0][0]._encoder is not None and swarms[1][0]._encoder is None
     clock = {"t": 0.0}
     for a in swarms[0] + swarms[1]:
