@@ -3,6 +3,8 @@
 ``run``      every agent of a models folder on its own thread (or process) against one env; prints the paper's
              metrics and the loop timing, optionally writes them as JSON.
 ``degrade``  ``run`` over a grid of message loss x latency; writes a metrics table (Markdown and JSON).
+``bench``    time one actor on this machine in every engine (hot, cold, after warm-up) and optionally the
+             whole swarm's loop per engine.
 
 A bad models folder (or any input error) prints the named error with its fix and exits 2, never a traceback.
 """
@@ -81,6 +83,9 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--training-encoder", action="store_true",
                    help="build observations with the batched training encoder at B = 1 (the reference, ~0.4 ms) "
                         "instead of its bit-identical one-observer numba twin")
+    p.add_argument("--engine", choices=("onnxruntime", "compiled"), default="onnxruntime",
+                   help="how each actor runs: onnxruntime (default), or the actor's Gemm/ReLU/tanh chain read from "
+                        "the same ONNX file and compiled with numba, checked against onnxruntime at load")
 
 
 def _run_config(args: argparse.Namespace, duration: float, loss: float, latency: float):
@@ -89,7 +94,7 @@ def _run_config(args: argparse.Namespace, duration: float, loss: float, latency:
                        comm_range=args.comm_range, seed=args.seed)
     return RunConfig(duration_s=duration, rate_hz=args.rate, comms=comms, processes=args.processes, seed=args.seed,
                      stagger=not args.no_stagger, warm=not args.no_warm, reuse_observation=not args.no_reuse,
-                     fast_encoder=not args.training_encoder)
+                     fast_encoder=not args.training_encoder, engine=args.engine)
 
 
 def format_run(res: dict) -> str:
@@ -257,7 +262,12 @@ def add_degrade(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_degrade)
 
 
-SUBCOMMANDS = [add_run, add_degrade]
+def add_bench(sub: argparse._SubParsersAction) -> None:
+    from runtime.bench import add_bench as add
+    add(sub)
+
+
+SUBCOMMANDS = [add_run, add_degrade, add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:

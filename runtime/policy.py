@@ -14,6 +14,16 @@ returned and ``faults`` goes up.
 A model that has not run for a control period runs several times slower (its weights and onnxruntime's
 code have left the caches); ``warm()`` runs it once on the last observation so that an agent can pay that
 cost just before its tick instead of after it.
+
+Two engines run the actor (``engine=``):
+
+- ``"onnxruntime"`` (default): the session above; the observation and action checks around it are compiled
+  (``runtime.kernels``), so ``act`` is one onnxruntime call plus two short compiled calls.
+- ``"compiled"``: the actor's ``Gemm``/``Relu``/``Tanh`` chain is read from the very same ONNX file and run by
+  one compiled function (``runtime.kernels.mlp_act``), several times faster than any onnxruntime call for a
+  model this small. It is proved against onnxruntime on the loaded model before use (max |difference| <=
+  ``COMPILED_PARITY_TOL`` on random observations, else ``EngineMismatch``); a graph that is not such a chain
+  raises ``EngineUnsupported`` (use the default engine for it).
 """
 from __future__ import annotations
 
@@ -28,6 +38,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
+from runtime import kernels
 from runtime.spec import Role, SpecError, SwarmSpec
 
 log = logging.getLogger(__name__)
@@ -36,7 +47,9 @@ INPUT_NAME = "obs"
 OUTPUT_NAME = "action"
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = 1
-_F32_MAX_SQ = float(np.finfo(np.float32).max) ** 2 / 64  # |x| beyond ~float32 max would cast to inf
+_F32_MAX_SQ = kernels.OBS_LIMIT_SQ  # |x| beyond ~float32 max / 8 would overflow on its way through
+ENGINES = ("onnxruntime", "compiled")
+COMPILED_PARITY_TOL = 1e-5
 _FIX = "re-export with `swarm-export onnx --run runs/NAME --out models/NAME`"
 
 
@@ -62,6 +75,14 @@ class SpecMismatch(PolicyError):
 
 class ModelShapeError(PolicyError):
     """The model's input or output is not ``obs [batch, obs_dim]`` -> ``action [batch, 2]``."""
+
+
+class EngineUnsupported(PolicyError):
+    """``engine="compiled"`` runs only a chain of Gemm layers with Relu/Tanh; this model is something else."""
+
+
+class EngineMismatch(PolicyError):
+    """The compiled engine's actions differ from onnxruntime's on this model beyond the tolerance."""
 
 
 def session_options(tuned: bool = True) -> ort.SessionOptions:
@@ -96,7 +117,11 @@ class OnnxPolicy:
     """
 
     def __init__(self, path: str | Path, spec: SwarmSpec | None = None, role: Role | str | None = None,
-                 agent_id: str | None = None, sha256: str | None = None, tuned: bool = True) -> None:
+                 agent_id: str | None = None, sha256: str | None = None, tuned: bool = True,
+                 engine: str = "onnxruntime") -> None:
+        if engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+        self.engine = engine
         self.path = Path(path)
         if not self.path.is_file():
             raise ModelNotFound(f"no ONNX model at {str(self.path)!r}: {_FIX}")
@@ -125,8 +150,38 @@ class OnnxPolicy:
         self._out1 = np.zeros((1, self.act_dim), dtype=np.float32)
         self._io1 = self._bind(self._in1, self._out1)
         self._batch: dict[int, tuple[np.ndarray, np.ndarray, Any]] = {}
+        # the C++ session and binding behind the Python wrappers: one Python frame less per call
+        sess, io = getattr(self.session, "_sess", None), getattr(self._io1, "_iobinding", None)
+        if sess is not None and io is not None and hasattr(sess, "run_with_iobinding"):
+            self._run1 = lambda: sess.run_with_iobinding(io, None)
+        else:  # another onnxruntime layout: the public call
+            self._run1 = lambda: self.session.run_with_iobinding(self._io1)
+        self._last_obs = np.zeros(self.obs_dim, dtype=np.float32)
+        self._warm_out = np.zeros(self.act_dim, dtype=np.float32)
+        if engine == "compiled":
+            self._params, self._layers = _extract_mlp(self.path, self.obs_dim, self.act_dim)
+            self._h = np.zeros((2, int(max(self._layers[:, 1].max(), self.obs_dim))), dtype=np.float32)
+            self._check_compiled()
 
     # ------------------------------------------------------------------------------------- loading
+    def _check_compiled(self) -> None:
+        rng = np.random.default_rng(0)
+        x = np.concatenate([rng.uniform(-1.0, 1.0, (256, self.obs_dim)), rng.normal(0.0, 3.0, (256, self.obs_dim)),
+                            np.zeros((1, self.obs_dim))]).astype(np.float32)
+        ref = self.session.run(None, {INPUT_NAME: x})[0]
+        got = np.empty_like(ref)
+        for b in range(len(x)):
+            if kernels.mlp_act(x[b], self._params, self._layers, self._h, got[b]) == kernels.BAD_OUT:
+                # the kernel refused a non-finite output (a NaN weight, say): agreement if onnxruntime's is too
+                got[b] = ref[b] if not np.isfinite(ref[b]).all() else np.nan
+        err = float(np.max(np.abs(np.nan_to_num(got, nan=9.0) - np.nan_to_num(ref, nan=9.0))))
+        if not err <= COMPILED_PARITY_TOL:
+            raise EngineMismatch(f"{str(self.path)!r}: the compiled engine differs from onnxruntime by {err:.3g} "
+                                 f"(tolerance {COMPILED_PARITY_TOL}) on this model: load it with "
+                                 f"engine='onnxruntime'")
+        self.compiled_parity = err
+        """Max |compiled - onnxruntime| measured at load."""
+
     def _check_metadata(self, spec: SwarmSpec | None, role: Role | str | None,
                         agent_id: str | None) -> tuple[SwarmSpec, Role, str]:
         where = str(self.path)
@@ -193,33 +248,33 @@ class OnnxPolicy:
         o = obs if isinstance(obs, np.ndarray) else np.asarray(obs, dtype=np.float64)
         if o.shape != (self.obs_dim,):
             raise ValueError(f"{self.agent_id}: observation must have shape ({self.obs_dim},), got {o.shape}")
-        res = self._out1[0]
-        self.calls += 1
-        try:
-            q = float(np.dot(o, o))  # one cheap test for NaN, inf, and values that would overflow float32
-        except (FloatingPointError, RuntimeWarning):  # overflow, where numpy is set to raise
-            q = math.inf
-        if not q < _F32_MAX_SQ:
-            self._fault("non-finite or out-of-range observation")
-            res = None
-        else:
-            self._in1[0] = o
-            self.session.run_with_iobinding(self._io1)
-            if not math.isfinite(float(np.dot(res, res))):
-                self._fault("non-finite network output")
-                res = None
         if out is None:
-            return np.zeros(self.act_dim, dtype=np.float32) if res is None else res.copy()
-        if res is None:
+            out = np.zeros(self.act_dim, dtype=np.float32)
+        self.calls += 1
+        if self.engine == "compiled":
+            s = kernels.mlp_act(o, self._params, self._layers, self._h, out)
+            if s == kernels.OK:
+                self._last_obs = o
+            else:
+                self._fault("non-finite or out-of-range observation" if s == kernels.BAD_OBS
+                            else "non-finite network output")
+            return out
+        if not kernels.load_obs(o, self._in1):
+            self._fault("non-finite or out-of-range observation")
             out[:] = 0.0
-        else:
-            out[:] = res
+            return out
+        self._run1()
+        if not kernels.store_action(self._out1, out):
+            self._fault("non-finite network output")
         return out
 
     def warm(self) -> None:
         """Run the network once on the last observation (result discarded) to bring its weights and code
         back into the caches before a time-critical call."""
-        self.session.run_with_iobinding(self._io1)
+        if self.engine == "compiled":
+            kernels.mlp_act(self._last_obs, self._params, self._layers, self._h, self._warm_out)
+        else:
+            self._run1()
 
     def act_batch(self, obs: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Actions ``[B, act_dim]`` for observations ``[B, obs_dim]``; rows whose observation or output is
@@ -228,6 +283,18 @@ class OnnxPolicy:
         if o.ndim != 2 or o.shape[1] != self.obs_dim:
             raise ValueError(f"{self.agent_id}: observations must have shape (B, {self.obs_dim}), got {o.shape}")
         b = o.shape[0]
+        if self.engine == "compiled":
+            if out is None:
+                out = np.empty((b, self.act_dim), dtype=np.float32)
+            status = np.empty(b, dtype=np.int8)
+            self.calls += b
+            if kernels.mlp_act_batch(o, self._params, self._layers, self._h, out, status):
+                bad_obs = int((status == kernels.BAD_OBS).sum())
+                if bad_obs:
+                    self._fault("non-finite or out-of-range observation", bad_obs)
+                if b - bad_obs - int((status == kernels.OK).sum()):
+                    self._fault("non-finite network output", int((status == kernels.BAD_OUT).sum()))
+            return out
         if b not in self._batch:
             x = np.zeros((b, self.obs_dim), dtype=np.float32)
             y = np.zeros((b, self.act_dim), dtype=np.float32)
@@ -250,6 +317,61 @@ class OnnxPolicy:
             out = np.empty((b, self.act_dim), dtype=np.float32)
         out[:] = np.where(keep[:, None], y, 0.0)
         return out
+
+
+def _extract_mlp(path: Path, obs_dim: int, act_dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The flat float32 parameters and the layer table of ``runtime.kernels.mlp_act`` for a model whose graph
+    is ``obs -> Gemm [-> Relu|Tanh] -> ... -> action``; ``EngineUnsupported`` for anything else."""
+    try:
+        import onnx
+        from onnx import helper, numpy_helper
+    except ImportError:  # pragma: no cover - onnx is a dependency
+        raise EngineUnsupported("engine='compiled' reads the weights with the onnx package: pip install onnx") \
+            from None
+    where = str(path)
+
+    def unsupported(why: str) -> EngineUnsupported:
+        return EngineUnsupported(f"{where!r}: {why}; engine='compiled' runs only Gemm layers with Relu or Tanh "
+                                 f"between {INPUT_NAME!r} and {OUTPUT_NAME!r}: use engine='onnxruntime'")
+
+    model = onnx.load(where)
+    inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    nodes = list(model.graph.node)
+    acts = {"Relu": kernels.ACT_RELU, "Tanh": kernels.ACT_TANH}
+    cur, width, k = INPUT_NAME, obs_dim, 0
+    blocks: list[np.ndarray] = []
+    rows: list[tuple[int, int, int, int, int]] = []
+    offset = 0
+    while k < len(nodes):
+        node = nodes[k]
+        if node.op_type != "Gemm" or node.input[0] != cur:
+            raise unsupported(f"node {k} is {node.op_type} on {list(node.input)}, expected Gemm on {cur!r}")
+        attrs = {a.name: helper.get_attribute_value(a) for a in node.attribute}
+        if attrs.get("transA", 0) or any(n not in inits for n in node.input[1:]):
+            raise unsupported(f"Gemm node {k} transposes its input or takes weights that are not constants")
+        w = inits[node.input[1]].astype(np.float64)
+        w = (w.T if attrs.get("transB", 0) else w) * float(attrs.get("alpha", 1.0))  # -> [in, out]
+        if w.ndim != 2 or w.shape[0] != width:
+            raise unsupported(f"Gemm node {k} has weights {w.shape}, its input has {width} features")
+        n_out = w.shape[1]
+        bias = np.zeros(n_out)
+        if len(node.input) > 2 and node.input[2]:
+            try:
+                bias = np.broadcast_to(inits[node.input[2]].astype(np.float64) * float(attrs.get("beta", 1.0)),
+                                       (1, n_out))[0]
+            except ValueError:
+                raise unsupported(f"Gemm node {k}'s bias does not broadcast to {n_out} outputs") from None
+        cur, act = node.output[0], kernels.ACT_NONE
+        if k + 1 < len(nodes) and nodes[k + 1].op_type in acts and list(nodes[k + 1].input) == [cur]:
+            act, cur = acts[nodes[k + 1].op_type], nodes[k + 1].output[0]
+            k += 1
+        rows.append((width, n_out, offset, offset + w.size, act))
+        blocks += [w.astype(np.float32).ravel(), bias.astype(np.float32)]
+        offset += w.size + n_out
+        width, k = n_out, k + 1
+    if not rows or cur != OUTPUT_NAME or width != act_dim:
+        raise unsupported(f"the chain ends in {cur!r} with {width} values")
+    return np.concatenate(blocks), np.asarray(rows, dtype=np.int64)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -311,14 +433,15 @@ def read_manifest(folder: str | Path, spec: SwarmSpec | None = None) -> Manifest
 
 
 def load_models(folder: str | Path, spec: SwarmSpec | None = None, tuned: bool = True,
-                agents: list[int] | None = None) -> tuple[Manifest, list[OnnxPolicy]]:
+                agents: list[int] | None = None, engine: str = "onnxruntime") -> tuple[Manifest, list[OnnxPolicy]]:
     """Every actor of a models folder (or only the ``agents`` indices), checked against the manifest."""
     m = read_manifest(folder, spec)
     idx = range(len(m.agents)) if agents is None else agents
     pols = []
     for i in idx:
         e = m.agents[i]
-        pol = OnnxPolicy(e.file, spec=m.spec, role=e.role, agent_id=e.id, sha256=e.sha256, tuned=tuned)
+        pol = OnnxPolicy(e.file, spec=m.spec, role=e.role, agent_id=e.id, sha256=e.sha256, tuned=tuned,
+                         engine=engine)
         if pol.obs_dim != e.obs_dim:
             raise ModelShapeError(f"{str(e.file)!r} takes {pol.obs_dim} inputs, the manifest says {e.obs_dim}; "
                                   f"{_FIX}")

@@ -264,12 +264,16 @@ class RunConfig:
     for another thread's interpreter lock; None keeps Python's 5 ms."""
     startup_s: float = 0.5
     """Delay between launching and the first tick, for processes to come up [s]."""
+    engine: str = "onnxruntime"
+    """How each actor runs (``runtime.policy.ENGINES``): onnxruntime, or the compiled MLP proved equal to it."""
 
     def __post_init__(self) -> None:
         if not (self.duration_s > 0 and math.isfinite(self.duration_s)):
             raise SpecError(f"run.duration_s: must be a finite number > 0, got {self.duration_s!r}")
         if self.rate_hz is not None and not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
             raise SpecError(f"run.rate_hz: must be a finite number > 0, got {self.rate_hz!r}")
+        if self.engine not in ("onnxruntime", "compiled"):
+            raise SpecError(f"run.engine: must be 'onnxruntime' or 'compiled', got {self.engine!r}")
 
 
 def _agent_config(spec: SwarmSpec, cfg: RunConfig, index: int) -> AgentConfig:
@@ -292,7 +296,7 @@ def _agent_main(index: int, models: str, board_name: str, ports: list[int], cfg:
                 t_end: float, out: mp.Queue) -> None:
     from runtime.policy import load_models
     try:
-        manifest, (pol,) = load_models(models, agents=[index])
+        manifest, (pol,) = load_models(models, agents=[index], engine=cfg.engine)
         spec = manifest.spec
         board = WorldBoard(spec, name=board_name)
         radio = Radio(spec, index, UdpTransport(index, ports), cfg.comms)
@@ -342,7 +346,7 @@ def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
         _check_files(manifest)  # each agent process loads its own model; fail here, with the named error
         policies = None
     else:
-        manifest, policies = load_models(models)
+        manifest, policies = load_models(models, engine=cfg.engine)
     spec = manifest.spec
     n = spec.n_agents
     if cfg.fast_encoder:  # numba's compile or cache load (0.5-4 s), before the clock and the CPU count start
@@ -460,7 +464,8 @@ def _summarize(spec: SwarmSpec, cfg: RunConfig, world: dict, agents: list[dict],
                             for r in agents if r["stats"]["faults"]},
         "rss_mib": round(rss_kib / 1024.0, 1) if rss_kib > 0 else None,
         "config": {"duration_s": cfg.duration_s, "rate_hz": cfg.rate_hz or 1.0 / spec.timing.control_period,
-                   "processes": cfg.processes, "loss": cfg.comms.loss, "latency_s": cfg.comms.latency_s,
+                   "processes": cfg.processes, "engine": cfg.engine, "loss": cfg.comms.loss,
+                   "latency_s": cfg.comms.latency_s,
                    "bandwidth_bps": cfg.comms.bandwidth_bps, "comm_range": cfg.comms.range_for(spec),
                    "seed": cfg.seed, "stagger": cfg.stagger, "warm": cfg.warm,
                    "reuse_observation": cfg.reuse_observation, "agents": spec.n_agents,

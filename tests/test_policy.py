@@ -7,8 +7,9 @@ import onnx
 import onnxruntime as ort
 import pytest
 
-from runtime.policy import (ModelCorrupted, ModelMetadataError, ModelNotFound, ModelShapeError, OnnxPolicy,
-                            SpecMismatch, load_models, read_manifest)
+from runtime import policy as policy_mod
+from runtime.policy import (EngineMismatch, EngineUnsupported, ModelCorrupted, ModelMetadataError, ModelNotFound,
+                            ModelShapeError, OnnxPolicy, SpecMismatch, load_models, read_manifest)
 from runtime.spec import Role, SwarmSpec
 from runtime_fixtures import exported
 
@@ -16,6 +17,9 @@ from runtime_fixtures import exported
 @pytest.fixture(scope="module")
 def models():
     return exported()[1]
+
+
+ENGINES = ["onnxruntime", "compiled"]
 
 
 def _obs(spec, role, n, seed=0):
@@ -30,10 +34,11 @@ def _edit(src, dst, fn):
     return dst
 
 
-def test_act_matches_plain_onnxruntime_and_batch(models):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_act_matches_plain_onnxruntime_and_batch(models, engine):
     spec = SwarmSpec()
     for name, role in (("pursuer_0", Role.PURSUER), ("evader_1", Role.EVADER)):
-        pol = OnnxPolicy(models / f"{name}.onnx", spec=spec)
+        pol = OnnxPolicy(models / f"{name}.onnx", spec=spec, engine=engine)
         assert pol.role is role and pol.agent_id == name and pol.obs_dim == spec.obs_dim(role)
         x = _obs(spec, role, 200)
         ref = ort.InferenceSession(str(models / f"{name}.onnx")).run(None, {"obs": x.astype(np.float32)})[0]
@@ -49,9 +54,10 @@ def test_act_matches_plain_onnxruntime_and_batch(models):
 
 
 @pytest.mark.filterwarnings("ignore:overflow")
-def test_nonfinite_observation_returns_safe_action_and_counts(models):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_nonfinite_observation_returns_safe_action_and_counts(models, engine):
     spec = SwarmSpec()
-    pol = OnnxPolicy(models / "scout_0.onnx", spec=spec)
+    pol = OnnxPolicy(models / "scout_0.onnx", spec=spec, engine=engine)
     x = _obs(spec, Role.SCOUT, 4)
     cmd = np.full(2, 9.0)
     for bad in (np.nan, np.inf, -np.inf, 1e300):
@@ -70,7 +76,8 @@ def test_nonfinite_observation_returns_safe_action_and_counts(models):
     assert np.abs(pol.act(x[0])).sum() > 0  # and it recovers
 
 
-def test_nonfinite_output_returns_safe_action(models, tmp_path):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_nonfinite_output_returns_safe_action(models, tmp_path, engine):
     def nan_bias(m):
         last = [i for i in m.graph.initializer if i.name.endswith("4.bias")][0]
         arr = onnx.numpy_helper.to_array(last).copy()
@@ -78,7 +85,7 @@ def test_nonfinite_output_returns_safe_action(models, tmp_path):
         last.CopyFrom(onnx.numpy_helper.from_array(arr, last.name))
     path = _edit(models / "pursuer_1.onnx", tmp_path / "nan.onnx", nan_bias)
     spec = SwarmSpec()
-    pol = OnnxPolicy(path, spec=spec)
+    pol = OnnxPolicy(path, spec=spec, engine=engine)
     x = _obs(spec, Role.PURSUER, 5)
     assert np.array_equal(pol.act(x[0]), [0.0, 0.0]) and pol.faults == 1
     assert np.array_equal(pol.act_batch(x), np.zeros((5, 2))) and pol.faults == 6
@@ -149,9 +156,10 @@ def test_models_folder(models, tmp_path):
         read_manifest(models, spec=SwarmSpec.from_dict({"arena": {"half_width": 4.0}}))
 
 
-def test_act_allocates_nothing_in_steady_state(models):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_act_allocates_nothing_in_steady_state(models, engine):
     spec = SwarmSpec()
-    pol = OnnxPolicy(models / "pursuer_2.onnx", spec=spec)
+    pol = OnnxPolicy(models / "pursuer_2.onnx", spec=spec, engine=engine)
     x = _obs(spec, Role.PURSUER, 1)[0]
     cmd = np.zeros(2)
     for _ in range(50):
@@ -166,3 +174,39 @@ def test_act_allocates_nothing_in_steady_state(models):
         tracemalloc.stop()
     grown = sum(s.size_diff for s in after.compare_to(before, "filename") if s.size_diff > 0)
     assert grown < 4096, grown
+
+
+def test_compiled_engine_reads_any_gemm_form_and_refuses_other_graphs(models, tmp_path):
+    spec = SwarmSpec()
+    x = _obs(spec, Role.PURSUER, 300, seed=3).astype(np.float32)
+
+    def untranspose_and_scale(m):  # transB = 0 with the weight stored [in, out], alpha 0.5, beta 2
+        for node in m.graph.node:
+            if node.op_type != "Gemm":
+                continue
+            w = [i for i in m.graph.initializer if i.name == node.input[1]][0]
+            b = [i for i in m.graph.initializer if i.name == node.input[2]][0]
+            w.CopyFrom(onnx.numpy_helper.from_array(2.0 * onnx.numpy_helper.to_array(w).T.copy(), w.name))
+            b.CopyFrom(onnx.numpy_helper.from_array(0.5 * onnx.numpy_helper.to_array(b), b.name))
+            del node.attribute[:]
+            node.attribute.extend([onnx.helper.make_attribute("transB", 0), onnx.helper.make_attribute("alpha", 0.5),
+                                   onnx.helper.make_attribute("beta", 2.0)])
+    path = _edit(models / "pursuer_0.onnx", tmp_path / "gemm.onnx", untranspose_and_scale)
+    pol = OnnxPolicy(path, spec=spec, engine="compiled")
+    ref = ort.InferenceSession(str(models / "pursuer_0.onnx")).run(None, {"obs": x})[0]
+    assert pol.compiled_parity <= 1e-5
+    assert np.abs(pol.act_batch(x) - ref).max() <= 1e-5 and np.abs(pol.act(x[7]) - ref[7]).max() <= 1e-5
+
+    def leaky(m):
+        m.graph.node[1].op_type = "LeakyRelu"
+    with pytest.raises(EngineUnsupported, match="LeakyRelu.*engine='onnxruntime'"):
+        OnnxPolicy(_edit(models / "pursuer_0.onnx", tmp_path / "leaky.onnx", leaky), spec=spec, engine="compiled")
+    OnnxPolicy(tmp_path / "leaky.onnx", spec=spec)  # onnxruntime runs it
+    with pytest.raises(ValueError, match="engine must be one of"):
+        OnnxPolicy(models / "pursuer_0.onnx", spec=spec, engine="tensorrt")
+
+
+def test_compiled_engine_is_refused_when_it_disagrees(models, monkeypatch):
+    monkeypatch.setattr(policy_mod, "COMPILED_PARITY_TOL", -1.0)
+    with pytest.raises(EngineMismatch, match="engine='onnxruntime'"):
+        OnnxPolicy(models / "pursuer_0.onnx", spec=SwarmSpec(), engine="compiled")

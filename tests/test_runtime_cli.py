@@ -35,9 +35,10 @@ def test_run_threads_prints_metrics_and_writes_the_json_keys(models, tmp_path, c
 
 def test_run_processes_over_udp(models, tmp_path):
     out = tmp_path / "proc.json"
-    assert main(["run", "--models", str(models), "--duration", "1.5", "--processes", "--json", str(out)]) == 0
+    assert main(["run", "--models", str(models), "--duration", "1.5", "--processes", "--engine", "compiled",
+                 "--json", str(out)]) == 0
     res = json.loads(out.read_text())
-    assert res["config"]["processes"] is True
+    assert res["config"]["processes"] is True and res["config"]["engine"] == "compiled"
     assert res["steps"] >= 10 and res["agent_ticks"] >= 12 * 10 and res["agent_faults"] == 0
     assert res["comms"]["delivered"] > 0 and res["comms"]["dropped_malformed"] == 0
 
@@ -52,6 +53,24 @@ def test_degrade_writes_the_table(models, tmp_path):
     assert doc["rows"][1]["delivered_fraction"] < doc["rows"][0]["delivered_fraction"] == 1.0
     md = out.with_suffix(".md").read_text()
     assert "| 0.5 | 50 |" in md and "tracking" in md and "Run-to-run spread" in md
+
+
+def test_bench_times_every_engine_and_the_loop(models, tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--models", str(models), "--agent", "11", "--calls", "500", "--loop-seconds", "0.5",
+                 "--rate", "50", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "evader_1" in text and "compiled" in text and "onnxruntime default" in text and "deadline misses" in text
+    res = json.loads(out.read_text())
+    assert set(res["engines"]) == {"compiled", "onnxruntime tuned", "onnxruntime default"}
+    for name, r in res["engines"].items():
+        assert 0 < r["min_us"] <= r["p50_us"] <= r["p99_us"], name
+    assert res["engines"]["compiled"]["parity_vs_onnxruntime"] <= 1e-5
+    assert res["engines"]["onnxruntime tuned"]["cold_p50_us"] > 0
+    assert [r["engine"] for r in res["loops"]] == ["compiled", "onnxruntime"]
+    assert all(r["agent_ticks"] >= 12 * 10 and r["agent_faults"] == 0 for r in res["loops"])
+    bad = _cli("bench", "--models", str(models), "--agent", "12")
+    assert bad.returncode == 2 and "--agent: 12" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def _cli(*args):
