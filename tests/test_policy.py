@@ -210,3 +210,49 @@ def test_compiled_engine_is_refused_when_it_disagrees(models, monkeypatch):
     monkeypatch.setattr(policy_mod, "COMPILED_PARITY_TOL", -1.0)
     with pytest.raises(EngineMismatch, match="engine='onnxruntime'"):
         OnnxPolicy(models / "pursuer_0.onnx", spec=SwarmSpec(), engine="compiled")
+
+
+def _random_mlp(path, rng, widths, acts, trans_b, alpha, beta):
+    from onnx import TensorProto, helper, numpy_helper
+    nodes, inits, cur = [], [], "obs"
+    for k, (n_in, n_out) in enumerate(zip(widths[:-1], widths[1:])):
+        w = rng.normal(0, 1.5 / np.sqrt(n_in), (n_out, n_in) if trans_b else (n_in, n_out)).astype(np.float32)
+        b = rng.normal(0, 0.5, n_out).astype(np.float32)
+        inits += [numpy_helper.from_array(w, f"w{k}"), numpy_helper.from_array(b, f"b{k}")]
+        last = k == len(widths) - 2
+        out = "action" if last and acts[k] is None else f"z{k}"
+        nodes.append(helper.make_node("Gemm", [cur, f"w{k}", f"b{k}"], [out], transB=int(trans_b), alpha=alpha,
+                                      beta=beta))
+        cur = out
+        if acts[k] is not None:
+            cur = "action" if last else f"h{k}"
+            nodes.append(helper.make_node(acts[k], [out], [cur]))
+    graph = helper.make_graph(nodes, "mlp", [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["b", widths[0]])],
+                              [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["b", widths[-1]])], inits)
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+
+
+def test_compiled_kernel_equals_onnxruntime_on_random_mlps(tmp_path):
+    """Random depths, widths, activations and Gemm attributes: the compiled kernel computes what onnxruntime
+    computes, and refuses what it cannot compute."""
+    from runtime import kernels
+    from runtime.policy import _extract_mlp
+    rng = np.random.default_rng(7)
+    for case in range(12):
+        depth = int(rng.integers(1, 5))
+        widths = [int(rng.integers(1, 70)) for _ in range(depth)] + [2]
+        acts = [str(rng.choice(["Relu", "Tanh"])) if rng.random() < 0.8 else None for _ in range(depth)]
+        path = tmp_path / f"m{case}.onnx"
+        _random_mlp(path, rng, widths, acts, bool(rng.integers(2)), float(rng.choice([1.0, 0.5])),
+                    float(rng.choice([1.0, 2.0])))
+        params, layers = _extract_mlp(path, widths[0], 2)
+        x = rng.normal(0, 2, (300, widths[0])).astype(np.float32)
+        ref = ort.InferenceSession(str(path)).run(None, {"obs": x})[0]
+        h = np.zeros((2, max(widths)), dtype=np.float32)
+        got = np.zeros((300, 2), dtype=np.float32)
+        for b in range(300):
+            assert kernels.mlp_act(x[b], params, layers, h, got[b]) == kernels.OK
+        assert np.abs(got - ref).max() <= 1e-5 * max(1.0, np.abs(ref).max()), (case, widths, acts)
+    _random_mlp(tmp_path / "wide.onnx", rng, [5, 8, 3], ["Relu", None], True, 1.0, 1.0)
+    with pytest.raises(EngineUnsupported, match="3 values"):
+        _extract_mlp(tmp_path / "wide.onnx", 5, 2)
