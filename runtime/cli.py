@@ -271,7 +271,7 @@ SUBCOMMANDS = [add_run, add_degrade, add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="swarm-runtime", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="swarm-runtime", description=__doc__.splitlines()[0].replace("``", ""))
     parser.add_argument("-v", "--verbose", action="store_true", help="log faults and progress")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in SUBCOMMANDS:
