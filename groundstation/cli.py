@@ -117,6 +117,9 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--log", default=None, metavar="PATH", help="write the flight log (JSON lines) here")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw the trajectories to this picture")
     p.add_argument("--models", default=d.models, help=f"models folder from swarm-export onnx (default {d.models})")
+    p.add_argument("--engine", choices=("onnxruntime", "compiled"), default=d.engine,
+                   help="how the actors run: onnxruntime (default) or compiled (the same ONNX actors compiled with "
+                        "numba, checked against onnxruntime at load)")
     p.add_argument("--spec", default=d.spec, metavar="TOML",
                    help=f"experiment TOML whose [spec] the ground station uses (default {d.spec})")
     p.add_argument("--fence", default=d.fence, metavar="TOML", help=f"geofence (default {d.fence}); its "
@@ -134,7 +137,7 @@ def _run_demo(args: argparse.Namespace) -> int:
     from runtime.policy import PolicyError
     from runtime.spec import SpecError
     opts = DemoOptions(duration=args.duration, speed=args.speed, kill_link=args.kill_link, loss=args.loss,
-                       models=args.models, spec=args.spec, fence=args.fence, anchors=args.anchors,
+                       models=args.models, engine=args.engine, spec=args.spec, fence=args.fence, anchors=args.anchors,
                        flight=args.flight_config, seed=args.seed, json_path=args.json, log_path=args.log,
                        plot_path=args.plot, base_port=args.base_port)
     try:

@@ -79,6 +79,8 @@ class DemoOptions:
     loss: float = 0.0
     """Probability of losing each datagram, both directions."""
     models: str = "models/role_based"
+    engine: str = "onnxruntime"
+    """How the actors run: "onnxruntime" or "compiled" (``runtime.policy.ENGINES``)."""
     spec: str | None = "configs/role_based.toml"
     """TOML whose [spec] table is the spec the ground station encodes observations for (None: defaults)."""
     fence: str = "configs/fence.toml"
@@ -337,7 +339,7 @@ def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacl
     manifest_hash = read_manifest(opts.models).spec.hash
     with session:
         session.preflight(spec_hash=spec.hash, models_spec_hash=manifest_hash)
-        _, pols = load_models(opts.models, spec=spec)
+        _, pols = load_models(opts.models, spec=spec, engine=opts.engine)
         policies = {p.agent_id: p for p in pols}
         session.assign_roles()
         session.takeoff()
@@ -424,7 +426,7 @@ def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: Episod
                   "telemetry_period_ms": opts.telemetry_period_ms, "loss": opts.loss,
                   "relay_dropped": relay.dropped if relay else 0},
         "spec_hash": spec.hash,
-        "models": str(opts.models),
+        "models": str(opts.models), "engine": opts.engine,
         "seed": opts.seed,
         "speed": opts.speed,
         "duration": opts.duration,

@@ -74,8 +74,13 @@ class FleetConfig:
     """Telemetry period per drone [ms]."""
     connect_timeout: float = 10.0
     """[s]"""
+    engine: str = "onnxruntime"
+    """How the actors run (``runtime.policy.ENGINES``): "onnxruntime", or "compiled" (the same ONNX actors
+    compiled with numba, checked against onnxruntime when loaded)."""
 
     def __post_init__(self) -> None:
+        if self.engine not in ("onnxruntime", "compiled"):
+            raise SpecError(f"engine: {self.engine!r} is not 'onnxruntime' or 'compiled'")
         ids = [d.id for d in self.drones]
         dup = sorted({i for i in ids if ids.count(i) > 1})
         if dup:
@@ -165,7 +170,7 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
         with session:
             session.preflight(spec_hash=spec.hash, models_spec_hash=manifest.spec.hash,
                               require_all=fleet.require_all)
-            _, pols = load_models(fleet.models, spec=spec)
+            _, pols = load_models(fleet.models, spec=spec, engine=fleet.engine)
             session.assign_roles()
             echo(f"roles: {session.assignment.by_drone}")
             session.takeoff()

@@ -19,8 +19,8 @@ Two engines run the actor (``engine=``):
 
 - ``"onnxruntime"`` (default): the session above; the observation and action checks around it are compiled
   (``runtime.kernels``), so ``act`` is one onnxruntime call plus two short compiled calls.
-- ``"compiled"``: the actor's ``Gemm``/``Relu``/``Tanh`` chain is read from the very same ONNX file and run by
-  one compiled function (``runtime.kernels.mlp_act``), several times faster than any onnxruntime call for a
+- ``"compiled"``: the actor's chain of ``Gemm`` (or ``MatMul`` + ``Add``), ``Relu`` and ``Tanh`` is read from
+  the very same ONNX file and run by one compiled function (``runtime.kernels.mlp_act``), several times faster than any onnxruntime call for a
   model this small. It is proved against onnxruntime on the loaded model before use (max |difference| <=
   ``COMPILED_PARITY_TOL`` on random observations, else ``EngineMismatch``); a graph that is not such a chain
   raises ``EngineUnsupported`` (use the default engine for it).
@@ -321,7 +321,8 @@ class OnnxPolicy:
 
 def _extract_mlp(path: Path, obs_dim: int, act_dim: int) -> tuple[np.ndarray, np.ndarray]:
     """The flat float32 parameters and the layer table of ``runtime.kernels.mlp_act`` for a model whose graph
-    is ``obs -> Gemm [-> Relu|Tanh] -> ... -> action``; ``EngineUnsupported`` for anything else."""
+    is ``obs -> Gemm (or MatMul + Add) [-> Relu|Tanh] -> ... -> action``; ``EngineUnsupported`` for anything
+    else."""
     try:
         import onnx
         from onnx import helper, numpy_helper
@@ -331,8 +332,9 @@ def _extract_mlp(path: Path, obs_dim: int, act_dim: int) -> tuple[np.ndarray, np
     where = str(path)
 
     def unsupported(why: str) -> EngineUnsupported:
-        return EngineUnsupported(f"{where!r}: {why}; engine='compiled' runs only Gemm layers with Relu or Tanh "
-                                 f"between {INPUT_NAME!r} and {OUTPUT_NAME!r}: use engine='onnxruntime'")
+        return EngineUnsupported(f"{where!r}: {why}; engine='compiled' runs only Gemm (or MatMul + Add) layers "
+                                 f"with Relu or Tanh between {INPUT_NAME!r} and {OUTPUT_NAME!r}: use "
+                                 f"engine='onnxruntime'")
 
     model = onnx.load(where)
     inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
@@ -344,24 +346,36 @@ def _extract_mlp(path: Path, obs_dim: int, act_dim: int) -> tuple[np.ndarray, np
     offset = 0
     while k < len(nodes):
         node = nodes[k]
-        if node.op_type != "Gemm" or node.input[0] != cur:
-            raise unsupported(f"node {k} is {node.op_type} on {list(node.input)}, expected Gemm on {cur!r}")
+        if node.op_type not in ("Gemm", "MatMul") or node.input[0] != cur:
+            raise unsupported(f"node {k} is {node.op_type} on {list(node.input)}, expected Gemm or MatMul on "
+                              f"{cur!r}")
         attrs = {a.name: helper.get_attribute_value(a) for a in node.attribute}
-        if attrs.get("transA", 0) or any(n not in inits for n in node.input[1:]):
-            raise unsupported(f"Gemm node {k} transposes its input or takes weights that are not constants")
+        if attrs.get("transA", 0) or any(n not in inits for n in node.input[1:] if n):
+            raise unsupported(f"{node.op_type} node {k} transposes its input or takes weights that are not "
+                              f"constants")
         w = inits[node.input[1]].astype(np.float64)
         w = (w.T if attrs.get("transB", 0) else w) * float(attrs.get("alpha", 1.0))  # -> [in, out]
         if w.ndim != 2 or w.shape[0] != width:
-            raise unsupported(f"Gemm node {k} has weights {w.shape}, its input has {width} features")
+            raise unsupported(f"{node.op_type} node {k} has weights {w.shape}, its input has {width} features")
         n_out = w.shape[1]
+        bias_name, beta = (node.input[2] if len(node.input) > 2 else ""), float(attrs.get("beta", 1.0))
+        cur = node.output[0]
+        if node.op_type == "MatMul":  # MatMul + Add(bias) is a Gemm
+            nxt = nodes[k + 1] if k + 1 < len(nodes) else None
+            if nxt is None or nxt.op_type != "Add" or cur not in nxt.input:
+                raise unsupported(f"MatMul node {k} is not followed by an Add of its bias")
+            other = [n for n in nxt.input if n != cur]
+            if len(other) != 1 or other[0] not in inits:
+                raise unsupported(f"the Add after MatMul node {k} does not add a constant bias")
+            bias_name, beta, cur = other[0], 1.0, nxt.output[0]
+            k += 1
         bias = np.zeros(n_out)
-        if len(node.input) > 2 and node.input[2]:
+        if bias_name:
             try:
-                bias = np.broadcast_to(inits[node.input[2]].astype(np.float64) * float(attrs.get("beta", 1.0)),
-                                       (1, n_out))[0]
+                bias = np.broadcast_to(inits[bias_name].astype(np.float64) * beta, (1, n_out))[0]
             except ValueError:
-                raise unsupported(f"Gemm node {k}'s bias does not broadcast to {n_out} outputs") from None
-        cur, act = node.output[0], kernels.ACT_NONE
+                raise unsupported(f"layer at node {k}: its bias does not broadcast to {n_out} outputs") from None
+        act = kernels.ACT_NONE
         if k + 1 < len(nodes) and nodes[k + 1].op_type in acts and list(nodes[k + 1].input) == [cur]:
             act, cur = acts[nodes[k + 1].op_type], nodes[k + 1].output[0]
             k += 1

@@ -24,9 +24,10 @@ def test_short_demo_flies_loses_a_link_lands_and_reports(tmp_path):
     out = tmp_path / "out"
     r = _demo("--duration", "3", "--models", str(models), "--json", str(out / "demo.json"),
               "--log", str(out / "flight.jsonl"), "--plot", str(out / "demo.png"), "--seed", "7",
-              "--kill-link", "cf4@0.5")
+              "--kill-link", "cf4@0.5", "--engine", "compiled")
     assert r.returncode == 0, r.stderr[-3000:]
     res = json.loads((out / "demo.json").read_text())
+    assert res["engine"] == "compiled"
     for key in RESULT_KEYS:
         assert key in res, key
     # cf4's link is cut: detected, and its firmware's watchdog brings it down (locked); the others land

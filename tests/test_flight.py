@@ -61,8 +61,12 @@ def test_fleet_file_errors_name_the_field(tmp_path):
     bad.write_text('[fleet]\n')
     with pytest.raises(SpecError, match="no drones"):
         FleetConfig.from_toml(bad)
+    bad.write_text('[fleet]\nengine = "tensorrt"\n'
+                   '[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
+    with pytest.raises(SpecError, match=r"engine: 'tensorrt' is not 'onnxruntime' or 'compiled'"):
+        FleetConfig.from_toml(bad)
     fleet, flight = FleetConfig.from_toml("configs/fleet_example.toml")
-    assert len(fleet.drones) == 4 and flight.speed_scale == 0.5
+    assert len(fleet.drones) == 4 and flight.speed_scale == 0.5 and fleet.engine == "onnxruntime"
 
 
 def test_demo_layout_helpers():

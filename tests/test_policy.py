@@ -212,7 +212,7 @@ def test_compiled_engine_is_refused_when_it_disagrees(models, monkeypatch):
         OnnxPolicy(models / "pursuer_0.onnx", spec=SwarmSpec(), engine="compiled")
 
 
-def _random_mlp(path, rng, widths, acts, trans_b, alpha, beta):
+def _random_mlp(path, rng, widths, acts, trans_b, alpha, beta, matmul=False):
     from onnx import TensorProto, helper, numpy_helper
     nodes, inits, cur = [], [], "obs"
     for k, (n_in, n_out) in enumerate(zip(widths[:-1], widths[1:])):
@@ -221,8 +221,14 @@ def _random_mlp(path, rng, widths, acts, trans_b, alpha, beta):
         inits += [numpy_helper.from_array(w, f"w{k}"), numpy_helper.from_array(b, f"b{k}")]
         last = k == len(widths) - 2
         out = "action" if last and acts[k] is None else f"z{k}"
-        nodes.append(helper.make_node("Gemm", [cur, f"w{k}", f"b{k}"], [out], transB=int(trans_b), alpha=alpha,
-                                      beta=beta))
+        if matmul:  # torch's other export form: MatMul with the weight [in, out], then Add of the bias
+            w = numpy_helper.to_array(inits[-2])
+            inits[-2] = numpy_helper.from_array((w.T if trans_b else w).copy(), f"w{k}")
+            nodes += [helper.make_node("MatMul", [cur, f"w{k}"], [f"m{k}"]),
+                      helper.make_node("Add", [f"m{k}", f"b{k}"], [out])]
+        else:
+            nodes.append(helper.make_node("Gemm", [cur, f"w{k}", f"b{k}"], [out], transB=int(trans_b), alpha=alpha,
+                                          beta=beta))
         cur = out
         if acts[k] is not None:
             cur = "action" if last else f"h{k}"
@@ -244,7 +250,7 @@ def test_compiled_kernel_equals_onnxruntime_on_random_mlps(tmp_path):
         acts = [str(rng.choice(["Relu", "Tanh"])) if rng.random() < 0.8 else None for _ in range(depth)]
         path = tmp_path / f"m{case}.onnx"
         _random_mlp(path, rng, widths, acts, bool(rng.integers(2)), float(rng.choice([1.0, 0.5])),
-                    float(rng.choice([1.0, 2.0])))
+                    float(rng.choice([1.0, 2.0])), matmul=case % 3 == 2)
         params, layers = _extract_mlp(path, widths[0], 2)
         x = rng.normal(0, 2, (300, widths[0])).astype(np.float32)
         ref = ort.InferenceSession(str(path)).run(None, {"obs": x})[0]
