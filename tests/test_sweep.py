@@ -85,3 +85,12 @@ def test_tiny_sweep_on_a_local_ray_instance(tmp_path):
     doc = json.loads((tmp_path / "runs" / "sweep.json").read_text())
     assert [row["n_pursuers"] for row in doc["rows"]] == [2]
     assert "on Ray at local" in r.stdout
+
+
+@pytest.mark.parametrize("path", sorted(Path("configs").glob("sweep*.toml")), ids=lambda p: p.name)
+def test_shipped_sweep_files_build_every_job(path):
+    sweep = SweepConfig.from_toml(path)
+    assert [n for n, _ in sweep.jobs()] == [2, 3, 4, 5, 6]
+    for n, seed in sweep.jobs():
+        cfg = job_config(sweep, n, seed)
+        assert cfg.spec.team.n_pursuers == n and cfg.train.seed == seed
