@@ -14,6 +14,7 @@ import threading
 import time
 
 from groundstation.sim.swarm import DEFAULT_BASE_PORT, SimError, SimSwarm
+from runtime.spec import ENGINES
 
 
 def _add_sim(subparsers: argparse._SubParsersAction) -> None:
@@ -117,7 +118,7 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--log", default=None, metavar="PATH", help="write the flight log (JSON lines) here")
     p.add_argument("--plot", default=None, metavar="PNG", help="draw the trajectories to this picture")
     p.add_argument("--models", default=d.models, help=f"models folder from swarm-export onnx (default {d.models})")
-    p.add_argument("--engine", choices=("onnxruntime", "compiled"), default=d.engine,
+    p.add_argument("--engine", choices=ENGINES, default=d.engine,
                    help="how the actors run: onnxruntime (default) or compiled (the same ONNX actors compiled with "
                         "numba, checked against onnxruntime at load)")
     p.add_argument("--spec", default=d.spec, metavar="TOML",

@@ -80,7 +80,7 @@ class DemoOptions:
     """Probability of losing each datagram, both directions."""
     models: str = "models/role_based"
     engine: str = "onnxruntime"
-    """How the actors run: "onnxruntime" or "compiled" (``runtime.policy.ENGINES``)."""
+    """How the actors run: "onnxruntime" or "compiled" (``runtime.spec.ENGINES``)."""
     spec: str | None = "configs/role_based.toml"
     """TOML whose [spec] table is the spec the ground station encodes observations for (None: defaults)."""
     fence: str = "configs/fence.toml"

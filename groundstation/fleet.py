@@ -27,7 +27,7 @@ from groundstation.positioning import AnchorLayout
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, check_position
 from runtime.policy import load_models, read_manifest
-from runtime.spec import SpecError, SwarmSpec, from_mapping, load_toml
+from runtime.spec import ENGINES, SpecError, SwarmSpec, from_mapping, load_toml
 
 log = logging.getLogger(__name__)
 
@@ -75,11 +75,11 @@ class FleetConfig:
     connect_timeout: float = 10.0
     """[s]"""
     engine: str = "onnxruntime"
-    """How the actors run (``runtime.policy.ENGINES``): "onnxruntime", or "compiled" (the same ONNX actors
+    """How the actors run (``runtime.spec.ENGINES``): "onnxruntime", or "compiled" (the same ONNX actors
     compiled with numba, checked against onnxruntime when loaded)."""
 
     def __post_init__(self) -> None:
-        if self.engine not in ("onnxruntime", "compiled"):
+        if self.engine not in ENGINES:
             raise SpecError(f"engine: {self.engine!r} is not 'onnxruntime' or 'compiled'")
         ids = [d.id for d in self.drones]
         dup = sorted({i for i in ids if ids.count(i) > 1})

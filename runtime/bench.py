@@ -12,7 +12,6 @@ Torch-free, like the rest of ``runtime``: the torch eager comparison lives in
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
@@ -22,7 +21,8 @@ import numpy as np
 ENGINE_ROWS = ("compiled", "onnxruntime tuned", "onnxruntime default")
 
 
-def _percentiles(f, obs: np.ndarray, n: int) -> np.ndarray:
+def call_times_us(f, obs: np.ndarray, n: int) -> np.ndarray:
+    """Wall time [us] of each of ``n`` calls ``f(obs[k % len(obs)])``."""
     t = np.empty(n)
     pc = time.perf_counter_ns
     m = len(obs)
@@ -32,6 +32,21 @@ def _percentiles(f, obs: np.ndarray, n: int) -> np.ndarray:
         f(o)
         t[k] = pc() - t0
     return t / 1e3
+
+
+def cold_calls_us(pol, obs: np.ndarray, n: int, idle_s: float = 0.01) -> tuple[list[float], list[float]]:
+    """``n`` calls of ``pol.act`` after ``idle_s`` idle each (caches gone cold), and ``n`` more with
+    ``pol.warm()`` just before the call, interleaved: their times [us], (cold, after warm-up)."""
+    out = np.zeros(pol.act_dim, dtype=np.float32)
+    cold, warmed = [], []
+    for k in range(2 * n):
+        time.sleep(idle_s)
+        if k % 2:
+            pol.warm()
+        t0 = time.perf_counter_ns()
+        pol.act(obs[k % len(obs)], out=out)
+        (warmed if k % 2 else cold).append((time.perf_counter_ns() - t0) / 1e3)
+    return cold, warmed
 
 
 def bench_inference(models: str | Path, agent: int = 0, calls: int = 20000, blocks: int = 5,
@@ -59,7 +74,7 @@ def bench_inference(models: str | Path, agent: int = 0, calls: int = 20000, bloc
         for name, f in calls_by.items():
             for o in obs[:50]:
                 f(o)
-            parts[name].append(_percentiles(f, obs, per_block))
+            parts[name].append(call_times_us(f, obs, per_block))
     res: dict = {"agent": e.id, "role": e.role.label, "obs_dim": int(len(lo)), "calls_per_engine": per_block * blocks,
                  "load_avg_1min": round(os.getloadavg()[0], 2), "engines": {}}
     for name, ts in parts.items():
@@ -67,14 +82,7 @@ def bench_inference(models: str | Path, agent: int = 0, calls: int = 20000, bloc
         res["engines"][name] = {"p50_us": float(np.percentile(t, 50)), "p99_us": float(np.percentile(t, 99)),
                                 "min_us": float(t.min())}
     for name, pol in pols.items():
-        cold, warmed = [], []
-        for k in range(2 * cold_calls):
-            time.sleep(idle_s)
-            if k % 2:
-                pol.warm()
-            t0 = time.perf_counter_ns()
-            pol.act(obs[k % len(obs)], out=out[name])
-            (warmed if k % 2 else cold).append((time.perf_counter_ns() - t0) / 1e3)
+        cold, warmed = cold_calls_us(pol, obs, cold_calls, idle_s)
         res["engines"][name]["cold_p50_us"] = float(np.median(cold))
         res["engines"][name]["after_warm_p50_us"] = float(np.median(warmed))
     res["engines"]["compiled"]["parity_vs_onnxruntime"] = pols["compiled"].compiled_parity
@@ -123,9 +131,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
                   f"{r['tick_to_action_p50_us']:.0f} us, p99 {r['tick_to_action_p99_us']:.0f} us, max "
                   f"{r['tick_to_action_max_us']:.0f} us; deadline misses {r['deadline_misses']}", flush=True)
     if args.json is not None:
-        from runtime.cli import _json_safe
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_json_safe(res), indent=2) + "\n")
+        from runtime.cli import write_json
+        write_json(args.json, res)
         print(f"wrote {args.json}")
     return 0
 

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from runtime.comms import CommConfig
-from runtime.spec import SpecError
+from runtime.spec import ENGINES, SpecError
 
 JSON_KEYS = ("mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage", "collisions_per_episode",
              "episodes", "tick_to_action_p50_us", "tick_to_action_p99_us", "deadline_misses", "steps")
@@ -83,7 +83,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--training-encoder", action="store_true",
                    help="build observations with the batched training encoder at B = 1 (the reference, ~0.4 ms) "
                         "instead of its bit-identical one-observer numba twin")
-    p.add_argument("--engine", choices=("onnxruntime", "compiled"), default="onnxruntime",
+    p.add_argument("--engine", choices=ENGINES, default="onnxruntime",
                    help="how each actor runs: onnxruntime (default), or the actor's Gemm/ReLU/tanh chain read from "
                         "the same ONNX file and compiled with numba, checked against onnxruntime at load")
 
@@ -138,13 +138,18 @@ def _json_safe(obj):
     return obj
 
 
+def write_json(path: Path, obj) -> None:
+    """``obj`` as indented JSON at ``path`` (its folder created); NaN -> null, inf -> "inf"."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_json_safe(obj), indent=2) + "\n")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from runtime.swarm import run_swarm
     res = run_swarm(args.models, _run_config(args, args.duration, args.loss, args.latency))
     print(format_run(res))
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_json_safe(res), indent=2) + "\n")
+        write_json(args.json, res)
         print(f"wrote {args.json}")
     return 0
 
@@ -190,8 +195,7 @@ def _cmd_degrade(args: argparse.Namespace) -> int:
             "spec_hash": rows[0]["config"]["spec_hash"], "observability": rows[0]["config"]["observability"],
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t0)), "machine": _machine(),
             "wall_s": round(time.time() - t0, 1)}
-    out.with_suffix(".json").write_text(json.dumps(_json_safe({"meta": meta, "rows": rows, "baseline_repeats": repeats}),
-                                                   indent=2) + "\n")
+    write_json(out.with_suffix(".json"), {"meta": meta, "rows": rows, "baseline_repeats": repeats})
     out.with_suffix(".md").write_text(degradation_markdown(meta, rows, repeats))
     print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}")
     return 0

@@ -39,7 +39,7 @@ import numpy as np
 import onnxruntime as ort
 
 from runtime import kernels
-from runtime.spec import Role, SpecError, SwarmSpec
+from runtime.spec import ENGINES, Role, SpecError, SwarmSpec
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,6 @@ OUTPUT_NAME = "action"
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = 1
 _F32_MAX_SQ = kernels.OBS_LIMIT_SQ  # |x| beyond ~float32 max / 8 would overflow on its way through
-ENGINES = ("onnxruntime", "compiled")
 COMPILED_PARITY_TOL = 1e-5
 _FIX = "re-export with `swarm-export onnx --run runs/NAME --out models/NAME`"
 
@@ -149,6 +148,7 @@ class OnnxPolicy:
         self._in1 = np.zeros((1, self.obs_dim), dtype=np.float32)
         self._out1 = np.zeros((1, self.act_dim), dtype=np.float32)
         self._io1 = self._bind(self._in1, self._out1)
+        self._in_row, self._out_row = self._in1[0], self._out1[0]  # what the compiled checks read and write
         self._batch: dict[int, tuple[np.ndarray, np.ndarray, Any]] = {}
         # the C++ session and binding behind the Python wrappers: one Python frame less per call
         sess, io = getattr(self.session, "_sess", None), getattr(self._io1, "_iobinding", None)
@@ -170,10 +170,11 @@ class OnnxPolicy:
                             np.zeros((1, self.obs_dim))]).astype(np.float32)
         ref = self.session.run(None, {INPUT_NAME: x})[0]
         got = np.empty_like(ref)
-        for b in range(len(x)):
-            if kernels.mlp_act(x[b], self._params, self._layers, self._h, got[b]) == kernels.BAD_OUT:
-                # the kernel refused a non-finite output (a NaN weight, say): agreement if onnxruntime's is too
-                got[b] = ref[b] if not np.isfinite(ref[b]).all() else np.nan
+        status = np.empty(len(x), dtype=np.int8)
+        kernels.mlp_act_batch(x, self._params, self._layers, self._h, got, status)
+        # a refused non-finite output (a NaN weight, say) agrees when onnxruntime's is not finite either
+        refused = status == kernels.BAD_OUT
+        got[refused] = np.where(np.isfinite(ref[refused]).all(axis=1, keepdims=True), np.nan, ref[refused])
         err = float(np.max(np.abs(np.nan_to_num(got, nan=9.0) - np.nan_to_num(ref, nan=9.0))))
         if not err <= COMPILED_PARITY_TOL:
             raise EngineMismatch(f"{str(self.path)!r}: the compiled engine differs from onnxruntime by {err:.3g} "
@@ -259,12 +260,12 @@ class OnnxPolicy:
                 self._fault("non-finite or out-of-range observation" if s == kernels.BAD_OBS
                             else "non-finite network output")
             return out
-        if not kernels.load_obs(o, self._in1):
+        if not kernels.load_obs(o, self._in_row):
             self._fault("non-finite or out-of-range observation")
             out[:] = 0.0
             return out
         self._run1()
-        if not kernels.store_action(self._out1, out):
+        if not kernels.store_action(self._out_row, out):
             self._fault("non-finite network output")
         return out
 
@@ -289,11 +290,11 @@ class OnnxPolicy:
             status = np.empty(b, dtype=np.int8)
             self.calls += b
             if kernels.mlp_act_batch(o, self._params, self._layers, self._h, out, status):
-                bad_obs = int((status == kernels.BAD_OBS).sum())
+                bad_obs, bad_out = int((status == kernels.BAD_OBS).sum()), int((status == kernels.BAD_OUT).sum())
                 if bad_obs:
                     self._fault("non-finite or out-of-range observation", bad_obs)
-                if b - bad_obs - int((status == kernels.OK).sum()):
-                    self._fault("non-finite network output", int((status == kernels.BAD_OUT).sum()))
+                if bad_out:
+                    self._fault("non-finite network output", bad_out)
             return out
         if b not in self._batch:
             x = np.zeros((b, self.obs_dim), dtype=np.float32)

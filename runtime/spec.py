@@ -49,6 +49,9 @@ from typing import Any, Mapping
 SPEC_FORMAT = 1
 """Bumped whenever the meaning of a field or the observation encoding changes without a field changing."""
 
+ENGINES = ("onnxruntime", "compiled")
+"""How ``runtime.policy.OnnxPolicy`` runs an actor: the names ``RunConfig``, the CLIs and fleet files accept."""
+
 
 class SpecError(ValueError):
     """A spec or config value is wrong. The message names the field and says how to fix it."""

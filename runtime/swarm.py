@@ -30,7 +30,7 @@ import numpy as np
 from runtime.agent import Agent, AgentConfig, Perception, staggered
 from runtime.comms import CommConfig, CommStats, InProcessBus, Radio, UdpTransport, free_udp_ports
 from runtime.observation import OneObserverEncoder
-from runtime.spec import SpecError, SwarmSpec
+from runtime.spec import ENGINES, SpecError, SwarmSpec
 
 log = logging.getLogger(__name__)
 
@@ -265,14 +265,14 @@ class RunConfig:
     startup_s: float = 0.5
     """Delay between launching and the first tick, for processes to come up [s]."""
     engine: str = "onnxruntime"
-    """How each actor runs (``runtime.policy.ENGINES``): onnxruntime, or the compiled MLP proved equal to it."""
+    """How each actor runs (``runtime.spec.ENGINES``): onnxruntime, or the compiled MLP proved equal to it."""
 
     def __post_init__(self) -> None:
         if not (self.duration_s > 0 and math.isfinite(self.duration_s)):
             raise SpecError(f"run.duration_s: must be a finite number > 0, got {self.duration_s!r}")
         if self.rate_hz is not None and not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
             raise SpecError(f"run.rate_hz: must be a finite number > 0, got {self.rate_hz!r}")
-        if self.engine not in ("onnxruntime", "compiled"):
+        if self.engine not in ENGINES:
             raise SpecError(f"run.engine: must be 'onnxruntime' or 'compiled', got {self.engine!r}")
 
 

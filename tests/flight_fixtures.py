@@ -97,6 +97,15 @@ def wait_until(predicate, timeout: float, period: float = 0.01) -> bool:
     return bool(predicate())
 
 
+def stream(send, seconds: float, rate_hz: float = 50.0) -> None:
+    """Call ``send()`` at ``rate_hz`` for ``seconds`` (a setpoint stream)."""
+    import time
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        send()
+        time.sleep(1.0 / rate_hz)
+
+
 def on_ground(truth, z: float = 0.05) -> bool:
     """A simulated drone's ground truth says it is down with its motors off."""
     return truth.position[2] <= z and not truth.motors_on

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from cli_fixtures import in_process
 from runtime.metrics import METRIC_KEYS
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -48,17 +49,6 @@ def test_evaluate_writes_the_json_and_prints_the_table(tmp_path, policy, config)
     assert "tracking rate" in r.stdout and "paper" in r.stdout
     assert f"{doc['mean_min_dist']:.4f}" in r.stdout
     assert f"wrote {out}" in r.stdout
-
-
-def in_process(capsys, *args: str) -> tuple[int, str, str]:
-    """``swarm-train ARGS`` in this interpreter (cheaper than a subprocess): exit status, stdout, stderr."""
-    from training.cli import main
-    try:
-        rc = main(list(args))
-    except SystemExit as exc:  # argparse's own usage errors
-        rc = exc.code
-    out = capsys.readouterr()
-    return rc, out.out, out.err
 
 
 def test_same_seed_same_numbers_other_seed_other_numbers(tmp_path, capsys, monkeypatch):

@@ -5,12 +5,14 @@ takeoff, velocity and position setpoints that move the drone, land, emergency st
 peer detected from telemetry silence within 300 ms."""
 from __future__ import annotations
 
+import functools
 import math
 import time
 
 import numpy as np
 import pytest
 
+from flight_fixtures import stream as _stream, wait_until
 from groundstation.link import FlightState, Link, LinkError, LinkStats, Telemetry, open_link
 from groundstation.sim.swarm import SimSwarm, free_base_port
 
@@ -67,20 +69,7 @@ def peer_link(request):
         peer.stop()
 
 
-def _wait(predicate, timeout: float, period: float = 0.005) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period)
-    return predicate()
-
-
-def _stream(send, seconds: float, rate_hz: float = 50.0) -> None:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        send()
-        time.sleep(1.0 / rate_hz)
+_wait = functools.partial(wait_until, period=0.005)
 
 
 def _state(link: Link) -> FlightState:

@@ -2,6 +2,7 @@
 pymavlink peers; nothing is mocked."""
 from __future__ import annotations
 
+import functools
 import math
 import subprocess
 import sys
@@ -12,6 +13,7 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
+from flight_fixtures import stream as _stream, wait_until  # noqa: E402
 from groundstation.link import FlightState, LinkError, open_link, scheme_of  # noqa: E402
 from groundstation.mavlink_link import (MavlinkLink, enu_to_ned, fence_items, ned_to_enu, parse_uri,  # noqa: E402
                                         split_baud, yaw_enu_to_ned, yaw_ned_to_enu)
@@ -22,20 +24,7 @@ from groundstation.sim.swarm import free_base_port  # noqa: E402
 START = (0.5, -0.3, 0.0)
 
 
-def _wait(predicate, timeout: float, period: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period)
-    return predicate()
-
-
-def _stream(send, seconds: float, rate_hz: float = 50.0) -> None:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        send()
-        time.sleep(1.0 / rate_hz)
+_wait = functools.partial(wait_until, period=0.01)
 
 
 @pytest.fixture

@@ -10,16 +10,13 @@ import pytest
 from runtime import policy as policy_mod
 from runtime.policy import (EngineMismatch, EngineUnsupported, ModelCorrupted, ModelMetadataError, ModelNotFound,
                             ModelShapeError, OnnxPolicy, SpecMismatch, load_models, read_manifest)
-from runtime.spec import Role, SwarmSpec
+from runtime.spec import ENGINES, Role, SwarmSpec
 from runtime_fixtures import exported
 
 
 @pytest.fixture(scope="module")
 def models():
     return exported()[1]
-
-
-ENGINES = ["onnxruntime", "compiled"]
 
 
 def _obs(spec, role, n, seed=0):

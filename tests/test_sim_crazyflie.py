@@ -1,6 +1,7 @@
 """The simulated Crazyflie, driven by unmodified cflib over UDP (never a mock of cflib)."""
 from __future__ import annotations
 
+import functools
 import socket
 import struct
 import subprocess
@@ -20,6 +21,7 @@ from cflib.crazyflie.swarm import CachedCfFactory, Swarm  # noqa: E402
 from cflib.crazyflie.syncCrazyflie import SyncCrazyflie  # noqa: E402
 from cflib.crazyflie.syncLogger import SyncLogger  # noqa: E402
 
+from flight_fixtures import stream as _stream, wait_until  # noqa: E402
 from groundstation.sim import crtp  # noqa: E402
 from groundstation.sim.firmware import Firmware, Mode, SupervisorState  # noqa: E402
 from groundstation.sim.flight_model import QuadBatch, QuadParams  # noqa: E402
@@ -42,13 +44,7 @@ def _connect(uri: str, tmp_path=None) -> SyncCrazyflie:
     return scf
 
 
-def _wait(predicate, timeout: float, period: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period)
-    return predicate()
+_wait = functools.partial(wait_until, period=0.02)
 
 
 def _first_log(scf: SyncCrazyflie, names: list[str], period_ms: int = 10) -> dict:
@@ -58,13 +54,6 @@ def _first_log(scf: SyncCrazyflie, names: list[str], period_ms: int = 10) -> dic
     with SyncLogger(scf, config) as logger:
         for _, data, _ in logger:
             return data
-
-
-def _stream(send, seconds: float, rate_hz: float = 50.0) -> None:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        send()
-        time.sleep(1.0 / rate_hz)
 
 
 # ---- raw protocol --------------------------------------------------------------------------------

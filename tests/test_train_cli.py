@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from cli_fixtures import in_process
 from runtime.metrics import METRIC_KEYS
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -151,17 +152,6 @@ def test_plot_run_draws_curves_and_a_snapshot(tiny_run, tmp_path):
         p = tmp_path / "figs" / name
         assert p.is_file() and p.stat().st_size > 5000, name
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
-def in_process(capsys, *args: str) -> tuple[int, str, str]:
-    """``swarm-train ARGS`` in this interpreter (cheaper than a subprocess): exit status, stdout, stderr."""
-    from training.cli import main
-    try:
-        rc = main(list(args))
-    except SystemExit as exc:  # argparse's own usage errors
-        rc = exc.code
-    out = capsys.readouterr()
-    return rc, out.out, out.err
 
 
 @pytest.mark.parametrize("line, field", [("update_every = 0", "train.update_every"),

@@ -192,33 +192,32 @@ def plot_training_curves(run: str | Path, out_dir: str | Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     m = _read_metrics(run)
     x = np.asarray(m["frames"]) / 1e6
-    paths = []
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
-    for role, color in _ROLE_COLORS.items():
-        if f"reward_{role}" in m:
-            ax.plot(x, m[f"reward_{role}"], color=color, label=role)
-    ax.set_xlabel("frames [millions]")
-    ax.set_ylabel("mean reward per agent and step")
-    ax.set_title(f"{run.name}: rewards per role")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    paths.append(out_dir / "rewards.png")
-    fig.savefig(paths[-1])
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
-    for key, label, style in (("max_dist", "max", ":"), ("avg_dist", "mean", "-"), ("min_dist", "min", "--")):
-        ax.plot(x, m[key], "k" + style, label=label)
-    ax.set_xlabel("frames [millions]")
-    ax.set_ylabel("pursuer-target distance [m]")
-    ax.set_title(f"{run.name}: pursuer-target distances (training episodes)")
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    paths.append(out_dir / "distances.png")
-    fig.savefig(paths[-1])
-    plt.close(fig)
-    return paths
+
+    def figure(name: str, ylabel: str, title: str, draw) -> Path:
+        fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
+        draw(ax)
+        ax.set_xlabel("frames [millions]")
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"{run.name}: {title}")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out_dir / name)
+        plt.close(fig)
+        return out_dir / name
+
+    def rewards(ax) -> None:
+        for role, color in _ROLE_COLORS.items():
+            if f"reward_{role}" in m:
+                ax.plot(x, m[f"reward_{role}"], color=color, label=role)
+
+    def distances(ax) -> None:
+        for key, label, style in (("max_dist", "max", ":"), ("avg_dist", "mean", "-"), ("min_dist", "min", "--")):
+            ax.plot(x, m[key], "k" + style, label=label)
+
+    return [figure("rewards.png", "mean reward per agent and step", "rewards per role", rewards),
+            figure("distances.png", "pursuer-target distance [m]",
+                   "pursuer-target distances (training episodes)", distances)]
 
 
 def cmd_plot_run(args: Any) -> int:

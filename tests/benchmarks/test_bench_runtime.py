@@ -22,6 +22,7 @@ import numpy as np
 import onnxruntime as ort
 import pytest
 
+from runtime.bench import call_times_us, cold_calls_us
 from runtime.comms import InProcessBus, Radio
 from runtime.policy import OnnxPolicy, load_models, session_options
 from runtime.spec import SwarmSpec
@@ -83,17 +84,6 @@ def test_single_inference(benchmark, models, variant):
     assert np.isfinite(a).all() and a.shape == (2,)
 
 
-def _percentiles(f, obs: np.ndarray, n: int) -> np.ndarray:
-    t = np.empty(n)
-    pc = time.perf_counter_ns
-    for k in range(n):
-        o = obs[k % len(obs)]
-        t0 = pc()
-        f(o)
-        t[k] = pc() - t0
-    return t / 1e3
-
-
 def test_inference_latency_same_run(benchmark, models):
     """p50/p99 per call of the three, interleaved in blocks in one run, and the hot vs cold call."""
     calls, pols = _callers(models)
@@ -105,22 +95,14 @@ def test_inference_latency_same_run(benchmark, models):
             for name, f in calls.items():
                 for o in obs[:50]:
                     f(o)
-                res[name].append(_percentiles(f, obs, 2000))
+                res[name].append(call_times_us(f, obs, 2000))
         stats: dict = {}
         for name, parts in res.items():
             t = np.concatenate(parts)
             stats[name] = {"p50_us": float(np.percentile(t, 50)), "p99_us": float(np.percentile(t, 99))}
         # the cold-cache call: after a control period (10 ms) idle, with and without a warm-up just before it
-        o = obs[0]
         for engine, pol in pols.items():
-            cold, warmed = [], []
-            for k in range(60):
-                time.sleep(0.01)
-                if k % 2:
-                    pol.warm()
-                t0 = time.perf_counter_ns()
-                pol.act(o)
-                (warmed if k % 2 else cold).append((time.perf_counter_ns() - t0) / 1e3)
+            cold, warmed = cold_calls_us(pol, obs[:1], 30)
             for name, t in ((f"{engine}_cold_after_10ms_idle", cold), (f"{engine}_after_warm_up", warmed)):
                 stats[name] = {"p50_us": float(np.median(t)), "p99_us": float(np.percentile(t, 99))}
         for engine in pols:
