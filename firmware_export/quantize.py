@@ -24,9 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from firmware_export.mlp_graph import CExportError, Dense
+from runtime.spec import INT8_QMAX
 
 ROUNDINGS = ("gptq", "nearest")
-QMAX = 127
+QMAX = INT8_QMAX
 DAMP = 0.01
 """GPTQ's damping: ``H + DAMP * mean(diag H) * I`` (keeps the inverse sane for inputs that never vary)."""
 

@@ -52,6 +52,10 @@ SPEC_FORMAT = 1
 ENGINES = ("onnxruntime", "compiled")
 """How ``runtime.policy.OnnxPolicy`` runs an actor: the names ``RunConfig``, the CLIs and fleet files accept."""
 
+INT8_QMAX = 127
+"""The int8 weight grid of the C export's ``--quant int8w`` (symmetric, one scale ``max|w| / INT8_QMAX`` per
+output neuron); training's ``int8_robustness`` penalty injects noise of that step."""
+
 
 class SpecError(ValueError):
     """A spec or config value is wrong. The message names the field and says how to fix it."""

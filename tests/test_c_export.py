@@ -230,6 +230,24 @@ def test_int8w_export_within_0_06_of_onnxruntime_on_a_trained_actor(work, spec, 
     assert diffs["gptq"] < diffs["nearest"]  # the error compensation is what buys the margin
 
 
+SHIPPED = Path(__file__).resolve().parent.parent / "models"
+
+
+@pytest.mark.parametrize("agent", ["pursuer_2", "scout_1", "evader_0"])
+def test_int8w_export_of_the_shipped_int8_ready_actors_within_0_06_of_onnxruntime(work, agent, record_property):
+    """``models/role_based_int8`` (trained with ``train.int8_robustness``; its worst actor of each role by the
+    report's sweep) through the CLI's default int8 path: 10,000 observations, half uniform in the spec's ranges,
+    half recorded from the simulator, against onnxruntime on the float model."""
+    model = SHIPPED / "role_based_int8" / f"{agent}.onnx"
+    ex = export_c(model, work / f"shipped_{agent}", quant="int8w")
+    obs = parity_observations(ex.model.spec, ex.model.role, N_PARITY, seed=0)
+    ref = onnx_actions(model, obs)
+    diff = float(np.abs(_host(ex, work).act_batch(obs) - ref).max())
+    record_property("int8w_max_abs_diff", diff)
+    assert np.abs(ref).max() > 0.9
+    assert 0.0 < diff <= 0.06
+
+
 def test_int8_rounding_schemes():
     rng = np.random.default_rng(0)
     w = rng.normal(0, 1, (16, 24))

@@ -104,6 +104,34 @@ def test_resume_continues_the_run_exactly_where_it_stopped(tiny_run, tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+def test_init_from_fine_tunes_another_run_under_a_new_config(tiny_run, tmp_path):
+    import torch
+    cfg = tmp_path / "int8.toml"
+    cfg.write_text(TINY.replace("threads = 1", "threads = 1\nint8_robustness = 30.0\nseed = 3"))
+    run = tmp_path / "ft"
+    r = swarm_train("train", "--config", str(cfg), "--init-from", str(tiny_run), "--out", str(run), "--steps", "200",
+                    "--no-progress")
+    assert r.returncode == 0, r.stderr
+    assert "finished at env step 200" in r.stdout
+    src = torch.load(tiny_run / "checkpoints" / "state.pt", weights_only=False)
+    st = torch.load(run / "checkpoints" / "state.pt", weights_only=False)
+    assert st["agent"]["updates"] == src["agent"]["updates"] + 50  # it went on from the source's networks
+    assert json.loads((run / "run.json").read_text())["init_from"] == {"run": str(tiny_run), "at_step": 150}
+    rows = _rows(run)
+    assert [int(x["step"]) for x in rows] == [200] and float(rows[-1]["int8_sensitivity"]) > 0
+    assert _rows(tiny_run)[-1]["int8_sensitivity"] == ""  # not logged when the penalty is off
+    assert "int8_robustness = 30.0" in (run / "config.toml").read_text()
+    # errors name the fix: nothing left to train, both flags, a source without a checkpoint
+    r = swarm_train("train", "--config", str(cfg), "--init-from", str(tiny_run), "--out", str(tmp_path / "x"),
+                    "--steps", "150", "--no-progress")
+    assert r.returncode == 2 and "already at env step 150" in r.stderr and "train.steps" in r.stderr
+    r = swarm_train("train", "--init-from", str(tiny_run), "--out", str(run), "--resume", "--no-progress")
+    assert r.returncode == 2 and "exclude each other" in r.stderr
+    r = swarm_train("train", "--config", str(cfg), "--init-from", str(tmp_path / "nowhere"), "--out",
+                    str(tmp_path / "y"), "--no-progress")
+    assert r.returncode == 2 and "state.pt does not exist" in r.stderr
+
+
 def test_sigterm_stops_with_a_checkpoint_that_resumes(tmp_path):
     cfg = tmp_path / "tiny.toml"
     cfg.write_text(TINY)

@@ -97,6 +97,13 @@ class TrainConfig:
     """Max global gradient norm, per agent, of every actor and critic update (0 disables)."""
     action_reg: float = 1e-3
     """Weight of the penalty on squared pre-tanh actor outputs (keeps tanh out of saturation) [1]."""
+    int8_robustness: float = 0.0
+    """Weight of the int8-robustness penalty on every actor (0 disables) [1]: the mean squared change of the
+    actions when each hidden layer's weights get uniform noise of one int8 step (``max|w| / 127`` per output
+    neuron, the C export's ``--quant int8w`` scale), plus the mean of the worst 5 % of those changes, on the
+    batch's observations and as many drawn uniformly within the spec's per-field ranges (the observations
+    the C export is checked on). It trains actors whose int8 export stays close to the float one; see
+    results/c_export_report.md."""
     reward_scale: float = 0.1
     """Multiplies every reward in the learner only (the env's rewards stay the paper's) [1]."""
     evaders: str = "learned"
@@ -129,7 +136,7 @@ class TrainConfig:
         for name in ("actor_lr", "critic_lr", "reward_scale"):
             if not getattr(self, name) > 0:
                 raise SpecError(f"train.{name}: must be > 0, got {getattr(self, name)!r}")
-        for name in ("noise_std", "noise_std_final", "grad_clip", "action_reg"):
+        for name in ("noise_std", "noise_std_final", "grad_clip", "action_reg", "int8_robustness"):
             if not getattr(self, name) >= 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
         for name in ("actor_hidden", "critic_hidden"):

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from runtime.spec import SwarmSpec
+from runtime.spec import INT8_QMAX, SwarmSpec
 from training.config import TrainConfig
 from training.networks import Actor
 
@@ -245,6 +245,15 @@ class MADDPG:
         self.learn_mask = learn  # [N] 1 for agents whose actor and critic train
         self._eye = torch.eye(n, device=self.device).view(n, 1, n, 1)
         self.updates = 0
+        # the int8-robustness penalty's observation ranges per agent ([N, 1, D], zero on the padding columns)
+        lo = torch.zeros(n, 1, d)
+        hi = torch.zeros(n, 1, d)
+        for i, role in enumerate(spec.roles):
+            r_lo, r_hi = spec.layout(role).bounds()
+            lo[i, 0, :len(r_lo)] = torch.tensor(r_lo)
+            hi[i, 0, :len(r_hi)] = torch.tensor(r_hi)
+        self._obs_lo, self._obs_span = lo.to(self.device), (hi - lo).to(self.device)
+        self.reg_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 7)
 
     # -------------------------------------------------------------------------------------- acting
     @torch.no_grad()
@@ -290,6 +299,9 @@ class MADDPG:
         finally:
             self.critics.requires_grad_(True)
         actor_loss_n = -q_pi.mean(1) + cfg.action_reg * pre.pow(2).mean((1, 2))
+        if cfg.int8_robustness > 0:
+            robust_n = self.int8_sensitivity(obs.transpose(0, 1))
+            actor_loss_n = actor_loss_n + cfg.int8_robustness * robust_n
         self.actor_opt.zero_grad(set_to_none=True)
         (actor_loss_n * mask).sum().backward()
         actor_norm = clip_grad_norm_per_agent(list(self.actors.parameters()), cfg.grad_clip)
@@ -299,10 +311,35 @@ class MADDPG:
         soft_update(self.critics_tgt, self.critics, cfg.tau)
         self.updates += 1
         w = mask / mask.sum()
-        return {"critic_loss": float((critic_loss_n.detach() * w).sum()),
+        extra = {"int8_sensitivity": float((robust_n.detach() * w).sum())} if cfg.int8_robustness > 0 else {}
+        return {**extra, "critic_loss": float((critic_loss_n.detach() * w).sum()),
                 "actor_loss": float((actor_loss_n.detach() * w).sum()),
                 "q_mean": float(q.detach().mean()),
                 "critic_grad_norm": float(critic_norm.mean()), "actor_grad_norm": float(actor_norm.mean())}
+
+    def int8_sensitivity(self, obs: torch.Tensor, worst: float = 0.05) -> torch.Tensor:
+        """Per agent [N]: the mean squared change of the actions on ``obs`` [N, K, D] and on K observations
+        uniform within each agent's per-field ranges when every hidden layer's weights get uniform noise of
+        one int8 step (``max|w| / INT8_QMAX`` per output neuron), plus the mean of the worst ``worst`` share
+        of those changes (the C export is judged on its worst observation)."""
+        n, k, _ = obs.shape
+        rand = self._obs_lo + self._obs_span * torch.rand(n, k, obs.shape[2], generator=self.reg_gen,
+                                                          device=self.device)
+        x = torch.cat([obs, rand], dim=1)  # [N, 2K, D]
+        clean, noisy = x, x
+        last = len(self.actors.weights) - 1
+        for li, (w, b) in enumerate(zip(self.actors.weights, self.actors.biases)):
+            if li < last:
+                step = w.detach().abs().amax(dim=1, keepdim=True) / INT8_QMAX  # [N, 1, out]: per output neuron
+                wn = w + (torch.rand(w.shape, generator=self.reg_gen, device=self.device) - 0.5) * step
+                clean = torch.relu(torch.matmul(clean, w) + b)
+                noisy = torch.relu(torch.matmul(noisy, wn) + b)
+            else:
+                clean = torch.tanh(torch.matmul(clean, w) + b)
+                noisy = torch.tanh(torch.matmul(noisy, w) + b)
+        change = (noisy - clean).pow(2).sum(-1)  # [N, 2K]
+        top = max(1, int(round(worst * change.shape[1])))
+        return change.mean(1) + change.topk(top, dim=1).values.mean(1)
 
     # --------------------------------------------------------------------------------- persistence
     def to_actors(self) -> list[Actor]:
@@ -313,7 +350,7 @@ class MADDPG:
         return {"actors": self.actors.state_dict(), "critics": self.critics.state_dict(),
                 "actors_tgt": self.actors_tgt.state_dict(), "critics_tgt": self.critics_tgt.state_dict(),
                 "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
-                "updates": self.updates}
+                "updates": self.updates, "reg_gen": self.reg_gen.get_state()}
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.actors.load_state_dict(sd["actors"])
@@ -325,6 +362,8 @@ class MADDPG:
         self.actor_opt.load_state_dict(copy.deepcopy(sd["actor_opt"]))
         self.critic_opt.load_state_dict(copy.deepcopy(sd["critic_opt"]))
         self.updates = int(sd["updates"])
+        if "reg_gen" in sd:  # absent in checkpoints written before the int8-robustness penalty
+            self.reg_gen.set_state(sd["reg_gen"].cpu() if self.device.type == "cpu" else sd["reg_gen"])
 
 
 # ------------------------------------------------------------------------------------------------

@@ -43,7 +43,7 @@ ROLES = ("pursuer", "scout", "evader")
 CSV_COLUMNS = ("step", "frames", "updates", "time_s", "fps", "updates_per_s", "noise_std",
                *(f"reward_{r}" for r in ROLES), *(f"return_{r}" for r in ROLES),
                "min_dist", "avg_dist", "max_dist", "captures_per_step", "episodes",
-               "critic_loss", "actor_loss", "q_mean")
+               "critic_loss", "actor_loss", "q_mean", "int8_sensitivity")
 STATE_FORMAT = 1
 
 
@@ -146,7 +146,8 @@ class _Window:
 class Trainer:
     """Owns the env, the learner, the buffer and the run folder of one training run."""
 
-    def __init__(self, cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> None:
+    def __init__(self, cfg: ExperimentConfig, out: str | Path, resume: bool = False,
+                 init_from: str | Path | None = None) -> None:
         self.cfg = cfg
         self.tc = tc = cfg.train
         self.out = Path(out)
@@ -172,10 +173,15 @@ class Trainer:
                          else np.asarray(team.indices(Role.SCOUT)))
         self.returns = np.zeros((tc.n_envs, cfg.spec.n_agents))
         self.ckpt_dir = self.out / "checkpoints"
+        if resume and init_from is not None:
+            raise RunError("--resume and --init-from exclude each other: resume continues a run in place, "
+                           "--init-from starts a new run from another run's checkpoint")
         if resume:
             self._load_checkpoint()
         else:
             self._init_run_folder()
+            if init_from is not None:
+                self._init_from(Path(init_from))
 
     # -- run folder ---------------------------------------------------------------------------------
     def _init_run_folder(self) -> None:
@@ -189,16 +195,17 @@ class Trainer:
         with (self.out / "metrics.csv").open("w", newline="") as fh:
             csv.writer(fh).writerow(CSV_COLUMNS)
 
-    def _load_checkpoint(self) -> None:
-        path = self.ckpt_dir / "state.pt"
+    def _restore(self, ckpt_dir: Path, what: str) -> None:
+        """Networks, optimizers, step counter, random streams and replay buffer from ``ckpt_dir``."""
+        path = ckpt_dir / "state.pt"
         if not path.is_file():
-            raise RunError(f"nothing to resume in {self.out}: {path} does not exist")
+            raise RunError(f"nothing to {what} in {ckpt_dir.parent}: {path} does not exist")
         st = torch.load(path, map_location=self.tc.device, weights_only=False)
         if st.get("format") != STATE_FORMAT:
             raise RunError(f"{path} has training-state format {st.get('format')}, this code reads {STATE_FORMAT}")
         if st["spec_hash"] != self.spec.hash:
             raise RunError(f"{path} was trained with spec {st['spec_hash']}, the config gives {self.spec.hash}: "
-                           f"resume with the run's own config.toml")
+                           f"{what} with a config of the same spec (the run's own config.toml)")
         self.agent.load_state_dict(st["agent"])
         self.env_step = int(st["env_step"])
         self.elapsed = float(st["elapsed"])
@@ -206,11 +213,26 @@ class Trainer:
         self.noise_gen.set_state(st["noise_gen"].cpu() if self.tc.device == "cpu" else st["noise_gen"])
         self.np_rng.bit_generator.state = st["np_rng"]
         self.env.world.rng.bit_generator.state = st["world_rng"]
-        bpath = self.ckpt_dir / "buffer.pt"
+        bpath = ckpt_dir / "buffer.pt"
         if bpath.is_file():
             self.buffer.load_state_dict(torch.load(bpath, map_location=self.tc.device, weights_only=True))
         else:
-            log.warning("no replay buffer saved in %s: refilling it from scratch", self.ckpt_dir)
+            log.warning("no replay buffer saved in %s: refilling it from scratch", ckpt_dir)
+
+    def _init_from(self, src: Path) -> None:
+        """Start this (new) run from ``src``'s last checkpoint: a fine-tune under this run's config."""
+        self._restore(src / "checkpoints", "start from")
+        if self.env_step >= self.tc.steps:
+            raise RunError(f"{src} is already at env step {self.env_step}: set train.steps (or --steps) above it "
+                           f"to fine-tune")
+        run = json.loads((self.out / "run.json").read_text())
+        run["init_from"] = {"run": str(src), "at_step": self.env_step}
+        (self.out / "run.json").write_text(json.dumps(run, indent=2) + "\n")
+        log.info("started %s from %s at env step %d (%d updates, %d transitions in the buffer)", self.out, src,
+                 self.env_step, self.agent.updates, len(self.buffer))
+
+    def _load_checkpoint(self) -> None:
+        self._restore(self.ckpt_dir, "resume")
         self._truncate_csv(self.env_step)
         run = json.loads((self.out / "run.json").read_text()) if (self.out / "run.json").is_file() else {}
         run.setdefault("resumed", []).append({"at_step": self.env_step, "utc": _utc_now(),
@@ -355,8 +377,8 @@ class Trainer:
         row["min_dist"], row["avg_dist"], row["max_dist"] = (win.dist / n).tolist()
         row["captures_per_step"] = win.captures / n
         row["episodes"] = len(win.returns[next(iter(self.role_idx))])
-        for k in ("critic_loss", "actor_loss", "q_mean"):
-            row[k] = win.losses[k] / win.n_updates if win.n_updates else ""
+        for k in ("critic_loss", "actor_loss", "q_mean", "int8_sensitivity"):
+            row[k] = win.losses[k] / win.n_updates if win.n_updates and k in win.losses else ""
         with (self.out / "metrics.csv").open("a", newline="") as fh:
             csv.writer(fh).writerow([_fmt(row[c]) for c in CSV_COLUMNS])
         for k, v in row.items():
@@ -422,9 +444,11 @@ def resolve_config(config: str | Path | None, out: str | Path, resume: bool, **o
     return cfg
 
 
-def train(cfg: ExperimentConfig, out: str | Path, resume: bool = False, progress: bool = True) -> TrainResult:
-    """Train (or continue) the run in ``out``; Ctrl-C saves a checkpoint and returns with ``interrupted``."""
-    trainer = Trainer(cfg, out, resume=resume)
+def train(cfg: ExperimentConfig, out: str | Path, resume: bool = False, progress: bool = True,
+          init_from: str | Path | None = None) -> TrainResult:
+    """Train (or continue) the run in ``out``; Ctrl-C saves a checkpoint and returns with ``interrupted``.
+    ``init_from``: a run folder whose last checkpoint this new run starts from (a fine-tune)."""
+    trainer = Trainer(cfg, out, resume=resume, init_from=init_from)
     if resume:  # a resumed run records the (possibly extended) config it continues with
         (trainer.out / "config.toml").write_text(dump_toml(cfg.to_dict()))
     return trainer.run(progress=progress)
@@ -448,6 +472,10 @@ def add_train_parser(sub: Any) -> None:
     p.add_argument("--n-envs", type=int, metavar="K", help="envs stepped together (overrides train.n_envs)")
     p.add_argument("--threads", type=int, metavar="T", help="torch CPU threads (overrides train.threads)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--init-from", metavar="RUN",
+                   help="start this new run from RUN's last checkpoint (networks, optimizers, replay buffer, env "
+                        "step) and go on under --config up to its train.steps: a fine-tune, e.g. "
+                        "configs/role_based_int8.toml from runs/role_based")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 
@@ -467,7 +495,7 @@ def cmd_train(args: Any) -> int:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         logging.getLogger().addHandler(handler)
         logging.getLogger().setLevel(min(logging.getLogger().level or logging.INFO, logging.INFO))
-        result = train(cfg, out, resume=args.resume, progress=not args.no_progress)
+        result = train(cfg, out, resume=args.resume, progress=not args.no_progress, init_from=args.init_from)
     except RunError as exc:
         raise UsageError(str(exc)) from None
     d = result.to_dict()
