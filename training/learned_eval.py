@@ -178,8 +178,8 @@ def _read_metrics(run: Path) -> dict[str, list[float]]:
         raise LearnedModelError(f"{path} has no rows yet: train longer than train.log_every steps")
     cols: dict[str, list[float]] = {}
     for k in rows[0]:
-        vals = [r[k] for r in rows]
-        if all(v != "" for v in vals):
+        vals = [r.get(k) for r in rows]
+        if all(v not in ("", None) for v in vals):  # None: a row written before the column existed
             cols[k] = [float(v) for v in vals]
     return cols
 
