@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from runtime import kernels
+from runtime import kernels, mlp_graph
 from runtime.spec import ENGINES, Role, SpecError, SwarmSpec
 
 log = logging.getLogger(__name__)
@@ -322,70 +322,31 @@ class OnnxPolicy:
 
 def _extract_mlp(path: Path, obs_dim: int, act_dim: int) -> tuple[np.ndarray, np.ndarray]:
     """The flat float32 parameters and the layer table of ``runtime.kernels.mlp_act`` for a model whose graph
-    is ``obs -> Gemm (or MatMul + Add) [-> Relu|Tanh] -> ... -> action``; ``EngineUnsupported`` for anything
-    else."""
+    is a chain ``runtime.mlp_graph`` reads (``obs -> Gemm (or MatMul + Add) [-> Relu|Tanh] -> ... -> action``);
+    ``EngineUnsupported`` for anything else."""
     try:
         import onnx
-        from onnx import helper, numpy_helper
     except ImportError:  # pragma: no cover - onnx is a dependency
         raise EngineUnsupported("engine='compiled' reads the weights with the onnx package: pip install onnx") \
             from None
     where = str(path)
-
-    def unsupported(why: str) -> EngineUnsupported:
-        return EngineUnsupported(f"{where!r}: {why}; engine='compiled' runs only Gemm (or MatMul + Add) layers "
-                                 f"with Relu or Tanh between {INPUT_NAME!r} and {OUTPUT_NAME!r}: use "
-                                 f"engine='onnxruntime'")
-
-    model = onnx.load(where)
-    inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
-    nodes = list(model.graph.node)
-    acts = {"Relu": kernels.ACT_RELU, "Tanh": kernels.ACT_TANH}
-    cur, width, k = INPUT_NAME, obs_dim, 0
+    fix = (f"engine='compiled' runs only Gemm (or MatMul + Add) layers with Relu or Tanh between {INPUT_NAME!r} "
+           f"and {OUTPUT_NAME!r}: use engine='onnxruntime'")
+    try:
+        layers = mlp_graph.extract_layers(onnx.load(where), repr(where))
+    except mlp_graph.GraphError as exc:
+        raise EngineUnsupported(f"{exc}; {fix}") from None
+    if layers[0].n_in != obs_dim or layers[-1].n_out != act_dim:
+        raise EngineUnsupported(f"{where!r}: the chain takes {layers[0].n_in} and ends with {layers[-1].n_out} "
+                                f"values, the model's input and output have {obs_dim} and {act_dim}; {fix}")
+    acts = {"none": kernels.ACT_NONE, "relu": kernels.ACT_RELU, "tanh": kernels.ACT_TANH}
     blocks: list[np.ndarray] = []
     rows: list[tuple[int, int, int, int, int]] = []
     offset = 0
-    while k < len(nodes):
-        node = nodes[k]
-        if node.op_type not in ("Gemm", "MatMul") or node.input[0] != cur:
-            raise unsupported(f"node {k} is {node.op_type} on {list(node.input)}, expected Gemm or MatMul on "
-                              f"{cur!r}")
-        attrs = {a.name: helper.get_attribute_value(a) for a in node.attribute}
-        if attrs.get("transA", 0) or any(n not in inits for n in node.input[1:] if n):
-            raise unsupported(f"{node.op_type} node {k} transposes its input or takes weights that are not "
-                              f"constants")
-        w = inits[node.input[1]].astype(np.float64)
-        w = (w.T if attrs.get("transB", 0) else w) * float(attrs.get("alpha", 1.0))  # -> [in, out]
-        if w.ndim != 2 or w.shape[0] != width:
-            raise unsupported(f"{node.op_type} node {k} has weights {w.shape}, its input has {width} features")
-        n_out = w.shape[1]
-        bias_name, beta = (node.input[2] if len(node.input) > 2 else ""), float(attrs.get("beta", 1.0))
-        cur = node.output[0]
-        if node.op_type == "MatMul":  # MatMul + Add(bias) is a Gemm
-            nxt = nodes[k + 1] if k + 1 < len(nodes) else None
-            if nxt is None or nxt.op_type != "Add" or cur not in nxt.input:
-                raise unsupported(f"MatMul node {k} is not followed by an Add of its bias")
-            other = [n for n in nxt.input if n != cur]
-            if len(other) != 1 or other[0] not in inits:
-                raise unsupported(f"the Add after MatMul node {k} does not add a constant bias")
-            bias_name, beta, cur = other[0], 1.0, nxt.output[0]
-            k += 1
-        bias = np.zeros(n_out)
-        if bias_name:
-            try:
-                bias = np.broadcast_to(inits[bias_name].astype(np.float64) * beta, (1, n_out))[0]
-            except ValueError:
-                raise unsupported(f"layer at node {k}: its bias does not broadcast to {n_out} outputs") from None
-        act = kernels.ACT_NONE
-        if k + 1 < len(nodes) and nodes[k + 1].op_type in acts and list(nodes[k + 1].input) == [cur]:
-            act, cur = acts[nodes[k + 1].op_type], nodes[k + 1].output[0]
-            k += 1
-        rows.append((width, n_out, offset, offset + w.size, act))
-        blocks += [w.astype(np.float32).ravel(), bias.astype(np.float32)]
-        offset += w.size + n_out
-        width, k = n_out, k + 1
-    if not rows or cur != OUTPUT_NAME or width != act_dim:
-        raise unsupported(f"the chain ends in {cur!r} with {width} values")
+    for d in layers:  # the kernel reads weights input-major: [in, out]
+        rows.append((d.n_in, d.n_out, offset, offset + d.weight.size, acts[d.activation]))
+        blocks += [np.ascontiguousarray(d.weight.T, dtype=np.float32).ravel(), d.bias.astype(np.float32)]
+        offset += d.weight.size + d.n_out
     return np.concatenate(blocks), np.asarray(rows, dtype=np.int64)
 
 

@@ -326,18 +326,15 @@ class MADDPG:
         rand = self._obs_lo + self._obs_span * torch.rand(n, k, obs.shape[2], generator=self.reg_gen,
                                                           device=self.device)
         x = torch.cat([obs, rand], dim=1)  # [N, 2K, D]
-        clean, noisy = x, x
+        noisy = x
         last = len(self.actors.weights) - 1
         for li, (w, b) in enumerate(zip(self.actors.weights, self.actors.biases)):
             if li < last:
                 step = w.detach().abs().amax(dim=1, keepdim=True) / INT8_QMAX  # [N, 1, out]: per output neuron
-                wn = w + (torch.rand(w.shape, generator=self.reg_gen, device=self.device) - 0.5) * step
-                clean = torch.relu(torch.matmul(clean, w) + b)
-                noisy = torch.relu(torch.matmul(noisy, wn) + b)
-            else:
-                clean = torch.tanh(torch.matmul(clean, w) + b)
-                noisy = torch.tanh(torch.matmul(noisy, w) + b)
-        change = (noisy - clean).pow(2).sum(-1)  # [N, 2K]
+                w = w + (torch.rand(w.shape, generator=self.reg_gen, device=self.device) - 0.5) * step
+            noisy = torch.matmul(noisy, w) + b
+            noisy = torch.relu(noisy) if li < last else torch.tanh(noisy)
+        change = (noisy - self.actors(x)).pow(2).sum(-1)  # [N, 2K]
         top = max(1, int(round(worst * change.shape[1])))
         return change.mean(1) + change.topk(top, dim=1).values.mean(1)
 
