@@ -43,12 +43,40 @@ class RewardConfig:
     exploration_weight: float = 1.0
     """E_i (eq. 5, Algorithm 1) = -exploration_weight x the largest bounded Voronoi cell area [1/m^2], every
     agent a seed."""
+    # ---- options beyond the paper (each off in the paper configs) ----
+    distance_mode: str = "mean"
+    """DR_p: "mean" (eq. 3: the pursuer's own mean distance to the evaders, flat on the segment between two
+    evaders, so it never asks a pursuer to commit to one) or "team" (team-aligned: every pursuer gets
+    -distance_weight x the mean over evaders of the NEAREST pursuer's distance, the quantity that the
+    tracking and minimum-distance metrics score, plus ``own_distance_weight`` x its own nearest-evader term)."""
+    own_distance_weight: float = 0.0
+    """With distance_mode = "team": adds -own_distance_weight x the pursuer's own distance to its nearest
+    evader, the individual credit that keeps every pursuer busy [1/m]."""
+    shared_capture: bool = False
+    """CR_p shared (MPE's convention): every pursuer gets capture_reward for each evader touched by ANY pursuer,
+    instead of only the pursuer that touched it."""
+    pursuer_boundary: bool = True
+    """Apply the boundary term (eq. 1) to pursuers (the paper does; evaders run for the walls, so a penalised
+    pursuer hangs back where the targets are)."""
+    proximity_penalty: float = 0.0
+    """Soft teammate-proximity penalty [1/step]: each pursuer-team agent loses proximity_penalty x
+    ramp(distance) per teammate closer than ``proximity_distance``, the ramp rising linearly from 0 there to
+    1 at contact (R_i + R_j); 0 disables. Flight keeps drones ``separation.min_distance`` apart anyway: this
+    teaches policies not to ask for it."""
+    proximity_distance: float = 0.35
+    """Centre distance [m] under which the proximity penalty starts (the flight's separation distance)."""
 
     def __post_init__(self) -> None:
         for name in ("boundary_c1", "boundary_c2", "boundary_gain", "collision_penalty", "obstacle_penalty",
-                     "capture_reward", "distance_weight", "captured_penalty", "exploration_weight"):
+                     "capture_reward", "distance_weight", "captured_penalty", "exploration_weight",
+                     "own_distance_weight", "proximity_penalty", "proximity_distance"):
             if not getattr(self, name) >= 0:
                 raise SpecError(f"rewards.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.distance_mode not in ("mean", "team"):
+            raise SpecError(f"rewards.distance_mode: {self.distance_mode!r} is not one of 'mean', 'team'")
+        if self.own_distance_weight and self.distance_mode != "team":
+            raise SpecError("rewards.own_distance_weight: only used with distance_mode = 'team'; set it to 0 "
+                            "or set distance_mode = 'team'")
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,10 @@ Rewards are the paper's, per agent (equations 1-5 and Algorithm 1, constants in 
 - evaders: ``R_e = B + C + CR_e`` with ``CR_e = -10`` per pursuer or scout touching it;
 - scouts: ``R_s = B + C + E`` with ``E = -max bounded Voronoi cell area``, every agent a seed.
 
+Options beyond the paper, each off by default (``RewardConfig``): an obstacle-contact penalty, a soft
+teammate-proximity penalty, a team-aligned distance term, a shared capture reward, the pursuers' boundary
+term off.
+
 Episodes end by time limit only (``spec.timing.episode_steps``); finished envs are reset automatically and
 their last observation is returned in ``info["final_obs"]`` (for bootstrapping, a time limit is not a
 terminal state).
@@ -54,13 +58,26 @@ def compute_rewards(spec: SwarmSpec, cfg: RewardConfig, pos: np.ndarray, dist: n
     collision = -cfg.collision_penalty * (contacts & same_side[None]).sum(-1)
     if obstacle_contacts is not None and cfg.obstacle_penalty:
         collision = collision - cfg.obstacle_penalty * obstacle_contacts
+    if cfg.proximity_penalty and nt > 1:
+        collision = collision - cfg.proximity_penalty * _proximity(spec, cfg, dist[:, :nt, :nt], nt, n)
     capture = np.zeros((b, n))
     distance = np.zeros((b, n))
     exploration = np.zeros((b, n))
     p = np.asarray(team.indices(Role.PURSUER))
     if p.size:
-        capture[:, p] = cfg.capture_reward * contacts[:, p, nt:].sum(-1)
-        distance[:, p] = -cfg.distance_weight * dist[:, p, nt:].mean(-1)
+        if not cfg.pursuer_boundary:
+            boundary[:, p] = 0.0
+        touched = contacts[:, p, nt:]  # [B, P, E]
+        if cfg.shared_capture:
+            capture[:, p] = cfg.capture_reward * touched.any(1).sum(-1, keepdims=True)
+        else:
+            capture[:, p] = cfg.capture_reward * touched.sum(-1)
+        pe = dist[:, p, nt:]  # [B, P, E]
+        if cfg.distance_mode == "team":
+            distance[:, p] = -cfg.distance_weight * pe.min(1).mean(-1, keepdims=True)
+            distance[:, p] -= cfg.own_distance_weight * pe.min(-1)
+        else:
+            distance[:, p] = -cfg.distance_weight * pe.mean(-1)
     capture[:, nt:] = -cfg.captured_penalty * contacts[:, nt:, :nt].sum(-1)
     sc = np.asarray(team.indices(Role.SCOUT))
     if sc.size:
@@ -68,6 +85,19 @@ def compute_rewards(spec: SwarmSpec, cfg: RewardConfig, pos: np.ndarray, dist: n
         areas = bounded_cell_areas(pos, spec.arena.half_width)
         exploration[:, sc] = -cfg.exploration_weight * areas.max(-1, keepdims=True)
     return RewardTerms(boundary, collision.astype(np.float64), capture, distance, exploration)
+
+
+def _proximity(spec: SwarmSpec, cfg: RewardConfig, dist: np.ndarray, nt: int, n: int) -> np.ndarray:
+    """[B, N]: per team agent, the sum over teammates of a ramp from 0 at ``proximity_distance`` to 1 at
+    contact; zero for evaders."""
+    radius = np.asarray(spec.per_agent("radius"))[:nt]
+    touch = radius[:, None] + radius[None, :]
+    span = np.maximum(cfg.proximity_distance - touch, 1e-9)
+    ramp = np.clip((cfg.proximity_distance - dist) / span, 0.0, 1.0)
+    ramp[:, np.arange(nt), np.arange(nt)] = 0.0
+    out = np.zeros(dist.shape[:1] + (n,))
+    out[:, :nt] = ramp.sum(-1)
+    return out
 
 
 class PursuitEnv:
