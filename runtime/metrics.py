@@ -10,8 +10,12 @@ Per control step and env:
   their sensing range during the episode (``coverage``), and the same for the current step averaged over the
   episode (``coverage_instant``). Measured on a raster of ``resolution`` m cells, cell centres tested exactly
   against every agent's sensing disc.
-- collisions: onsets of contact (distance <= R_i + R_j) between teammates or between evaders, plus onsets of
-  contact with an obstacle; captures: onsets of contact between a pursuer-team agent and an evader.
+- collisions: onsets of contact (distance <= R_i + R_j between two agents, or an agent touching an obstacle),
+  split by whose fault they are: ``teammate_contacts`` (pursuer/scout with pursuer/scout),
+  ``team_obstacle_contacts`` (a pursuer or scout touching an obstacle) and ``evader_contacts`` (evaders with
+  each other or with an obstacle: the opponents' doing, not the team's). ``team_contacts`` is the team's share
+  (teammate + team-obstacle) and ``collisions`` the total of all three, the figure reported before the split.
+- captures: onsets of contact between a pursuer-team agent and an evader (never counted as a collision).
 """
 from __future__ import annotations
 
@@ -23,7 +27,11 @@ import numpy as np
 from runtime.spec import Role, SwarmSpec
 
 METRIC_KEYS = ("episodes", "mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage",
-               "coverage_instant", "collisions_per_episode", "captures_per_episode")
+               "coverage_instant", "collisions_per_episode", "team_contacts_per_episode",
+               "teammate_contacts_per_episode", "team_obstacle_contacts_per_episode", "evader_contacts_per_episode",
+               "captures_per_episode")
+CONTACT_KINDS = ("teammate", "team_obstacle", "evader")
+"""The three parts of ``collisions``, in the order of ``EpisodeRecord.contacts``."""
 
 
 @dataclass
@@ -35,8 +43,20 @@ class EpisodeRecord:
     coverage: float
     coverage_instant: float
     collisions: int
+    """All contact onsets: teammate + team_obstacle + evader."""
     captures: int
     steps: int
+    teammate: int = 0
+    """Onsets of contact between two pursuer-team agents (pursuers and scouts)."""
+    team_obstacle: int = 0
+    """Onsets of a pursuer-team agent touching an obstacle."""
+    evader: int = 0
+    """Onsets of contact between two evaders or between an evader and an obstacle."""
+
+    @property
+    def team_contacts(self) -> int:
+        """The pursuer team's own contacts: teammate + team_obstacle."""
+        return self.teammate + self.team_obstacle
 
 
 class MetricsAccumulator:
@@ -61,6 +81,9 @@ class MetricsAccumulator:
         team = np.arange(n) < self.nt
         same = team[:, None] == team[None, :]
         iu = np.triu(np.ones((n, n), dtype=bool), 1)
+        self.team_mask = team
+        self.teammate_pairs = same & team[:, None] & iu
+        self.evader_pairs = same & ~team[:, None] & iu
         self.collision_pairs = same & iu
         self.capture_pairs = ~same & iu
         self.visited = np.zeros((n_envs, self.cells, self.cells), dtype=bool)
@@ -69,7 +92,7 @@ class MetricsAccumulator:
         self._prev_contact = np.zeros((n_envs, n, n), dtype=bool)
         self._prev_obstacle = np.zeros((n_envs, n), dtype=bool)
         self._sums = np.zeros((n_envs, 6))  # min, mean, max, tracked pairs, instant coverage, steps
-        self._collisions = np.zeros(n_envs, dtype=np.int64)
+        self._contacts = np.zeros((n_envs, len(CONTACT_KINDS)), dtype=np.int64)  # CONTACT_KINDS order
         self._captures = np.zeros(n_envs, dtype=np.int64)
         self.records: list[EpisodeRecord] = []
 
@@ -89,7 +112,7 @@ class MetricsAccumulator:
         self._prev_contact[ids] = False
         self._prev_obstacle[ids] = False
         self._sums[ids] = 0.0
-        self._collisions[ids] = 0
+        self._contacts[ids] = 0
         self._captures[ids] = 0
 
     def update(self, pos: np.ndarray, contacts: np.ndarray, obstacle_contacts: np.ndarray | None = None,
@@ -107,11 +130,14 @@ class MetricsAccumulator:
         inst = self._mark_coverage(pos[:, :nt])
         self._sums += np.stack([flat.min(1), flat.mean(1), flat.max(1), tracked, inst, np.ones(b)], axis=1)
         onset = contacts & ~self._prev_contact
-        self._collisions += (onset & self.collision_pairs[None]).sum((1, 2))
+        self._contacts[:, 0] += (onset & self.teammate_pairs[None]).sum((1, 2))
+        self._contacts[:, 2] += (onset & self.evader_pairs[None]).sum((1, 2))
         self._captures += (onset & self.capture_pairs[None]).sum((1, 2))
         self._prev_contact = contacts.copy()
         if obstacle_contacts is not None:
-            self._collisions += (obstacle_contacts & ~self._prev_obstacle).sum(1)
+            o = obstacle_contacts & ~self._prev_obstacle
+            self._contacts[:, 1] += o[:, self.team_mask].sum(1)
+            self._contacts[:, 2] += o[:, ~self.team_mask].sum(1)
             self._prev_obstacle = obstacle_contacts.copy()
 
     def _mark_coverage(self, pos: np.ndarray) -> np.ndarray:
@@ -150,8 +176,9 @@ class MetricsAccumulator:
                 continue
             m = self._sums[e] / steps
             cov = float((self.visited[e] & self.free[e]).sum() / self.free_count[e])
+            tm, to, ev = (int(c) for c in self._contacts[e])
             rec = EpisodeRecord(float(m[0]), float(m[1]), float(m[2]), float(m[3]), cov, float(m[4]),
-                                int(self._collisions[e]), int(self._captures[e]), int(steps))
+                                tm + to + ev, int(self._captures[e]), int(steps), tm, to, ev)
             out.append(rec)
         self.records += out
         return out
@@ -175,5 +202,9 @@ def summarize(records: list[EpisodeRecord]) -> dict[str, float]:
         "coverage": avg("coverage"),
         "coverage_instant": avg("coverage_instant"),
         "collisions_per_episode": avg("collisions"),
+        "team_contacts_per_episode": avg("team_contacts"),
+        "teammate_contacts_per_episode": avg("teammate"),
+        "team_obstacle_contacts_per_episode": avg("team_obstacle"),
+        "evader_contacts_per_episode": avg("evader"),
         "captures_per_episode": avg("captures"),
     }

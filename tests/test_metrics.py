@@ -82,6 +82,49 @@ def test_collisions_and_captures_count_onsets():
     assert rec.collisions == 2 + 1 + 2
     # capture onsets at t=1 and t=5
     assert rec.captures == 2
+    # the split: the pursuer pair is teammates', the scout's obstacle touches the team's, the evader pair theirs
+    assert (rec.teammate, rec.team_obstacle, rec.evader, rec.team_contacts) == (2, 2, 1, 4)
+
+
+def test_contacts_split_by_whose_fault_on_hand_built_states():
+    """Agents: pursuers 0-1, scout 2, evaders 3-4. Every kind of contact from real positions, one at a time."""
+    spec = SwarmSpec.from_dict({"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 2},
+                                "arena": {"n_obstacles": 1}})
+    radius = np.array(spec.per_agent("radius"))
+    obstacle_pos, obstacle_radius = np.array([[[0.0, 0.0]]]), np.array([[0.3]])
+    acc = MetricsAccumulator(spec, 2)
+    _begin(acc, 2, np.repeat(obstacle_pos, 2, 0), np.repeat(obstacle_radius, 2, 0))
+    apart = np.array([[-2.0, -2.0], [-2.0, 2.0], [2.0, -2.0], [2.0, 2.0], [2.5, 0.0]])
+
+    def frame(**moves):
+        p = apart.copy()
+        for i, xy in moves.items():
+            p[int(i[1:])] = xy
+        return p
+
+    touch = 0.3 + 0.99 * radius  # just inside contact with the obstacle
+    gap = 0.99 * (radius[:, None] + radius[None, :])  # just inside contact between two agents
+    env0 = [frame(a0=[-1.0, 0.0], a2=[-1.0 + gap[0, 2], 0.0]),   # pursuer 0 touches the scout: teammate
+            frame(),
+            frame(a1=[0.0, touch[1]]),                           # pursuer 1 on the obstacle: team-obstacle
+            frame(a3=[touch[3], 0.0]),                           # evader 0 on the obstacle: evader side
+            frame(a3=[1.0, 1.0], a4=[1.0 + gap[3, 4], 1.0]),     # the evaders touch each other: evader side
+            frame(a0=[1.0, 1.0], a3=[1.0 + gap[0, 3], 1.0])]     # pursuer 0 on evader 0: a capture, no collision
+    env1 = [frame() for _ in env0]
+    for a, b in zip(env0, env1):
+        pos = np.stack([a, b])
+        d = np.linalg.norm(pos[:, :, None] - pos[:, None], axis=-1)
+        contacts = (d <= radius[:, None] + radius[None, :]) & ~np.eye(5, dtype=bool)
+        obst = np.linalg.norm(pos - obstacle_pos[:, :1], axis=-1) <= 0.3 + radius
+        acc.update(pos, contacts, obst, d)
+    rec, quiet = acc.end_episodes(np.array([0, 1]))
+    assert (rec.teammate, rec.team_obstacle, rec.evader, rec.captures) == (1, 1, 2, 1)
+    assert rec.collisions == 4 and rec.team_contacts == 2
+    assert (quiet.collisions, quiet.captures) == (0, 0)
+    s = summarize([rec, quiet])
+    assert s["teammate_contacts_per_episode"] == 0.5 and s["team_obstacle_contacts_per_episode"] == 0.5
+    assert s["evader_contacts_per_episode"] == 1.0 and s["team_contacts_per_episode"] == 1.0
+    assert s["collisions_per_episode"] == 2.0 and s["captures_per_episode"] == 0.5
 
 
 def _brute_force_coverage(spec, frames, obstacle_pos, obstacle_radius, res):
