@@ -59,8 +59,9 @@ def test_replay_buffer_wraps_and_round_trips_newest_first_kept():
     small = ReplayBuffer(3, 2, 3)
     small.load_state_dict(sd)
     assert sorted(small.obs[:, 0, 0].tolist()) == [6, 7, 8]  # a smaller buffer keeps the newest
-    o, a, r, n = buf.sample(100, torch.Generator().manual_seed(0))
+    o, a, r, n, na = buf.sample(100, torch.Generator().manual_seed(0))
     assert o.shape == (100, 2, 3) and torch.equal(n, o + 0.5)
+    assert na.shape == (100, 2, 2) and not na.any()  # no next actions given: zeros
     with pytest.raises(ValueError, match="empty"):
         ReplayBuffer(4, 1, 1).sample(1, torch.Generator())
 
@@ -213,3 +214,49 @@ def test_scripted_evaders_act_in_training_but_do_not_learn(tmp_path):
     for p, b in zip(tr.agent.actors.parameters(), before):
         assert torch.equal(p[ev], b[ev])  # their actor did not train
         assert not torch.equal(p[0], b[0])
+
+
+def test_replay_buffer_keeps_next_actions_and_loads_old_buffers_without_them(caplog):
+    buf = ReplayBuffer(8, 2, 3)
+    obs = torch.arange(4, dtype=torch.float32).view(4, 1, 1).expand(4, 2, 3)
+    buf.add(obs, torch.zeros(4, 2, 2), torch.zeros(4, 2), obs + 0.5, obs[:, :, :2] + 0.25)
+    o, _, _, _, na = buf.sample(50, torch.Generator().manual_seed(0))
+    assert torch.equal(na, o[:, :, :2] + 0.25)
+    sd = buf.state_dict()
+    again = ReplayBuffer(8, 2, 3)
+    again.load_state_dict(sd)
+    assert torch.equal(again.next_act[:4], buf.next_act[:4])
+    old = {k: v for k, v in sd.items() if k != "next_act"}  # a checkpoint from before next actions
+    with caplog.at_level("WARNING", logger="training.maddpg"):
+        again.load_state_dict(old)
+    assert len(again) == 4 and not again.next_act.any()
+    assert "zero next actions" in caplog.text
+
+
+def test_td_target_uses_the_stored_next_action_of_scripted_agents_and_the_target_actor_of_learners():
+    cfg = _cfg(evaders="scripted")
+    agent = MADDPG(cfg.spec, cfg.train)
+    sp = cfg.spec
+    n, k, ev = sp.n_agents, 8, sp.team.indices(Role.EVADER)[0]
+    g = torch.Generator().manual_seed(3)
+    obs, next_obs = (torch.randn(k, n, sp.max_obs_dim, generator=g) for _ in range(2))
+    rew = torch.randn(k, n, generator=g)
+    stored = torch.rand(k, n, 2, generator=g) * 2 - 1  # what every agent "did" at next_obs
+    batch = (obs, torch.zeros(k, n, 2), rew, next_obs, stored)
+    y = agent.td_target(batch)
+    # by hand: the learners' next actions from their target actors, the scripted evader's as stored
+    expected_act = agent.actors_tgt(next_obs.transpose(0, 1)).transpose(0, 1).clone()
+    expected_act[:, ev] = stored[:, ev]
+    with torch.no_grad():
+        q = agent.critics_tgt(next_obs.reshape(k, -1), expected_act.reshape(k, -1))
+    torch.testing.assert_close(y, rew.t() * cfg.train.reward_scale + cfg.train.gamma * q)
+    # the scripted evader's stored action moves every critic's target; a learner's stored action does not
+    moved = stored.clone()
+    moved[:, ev] = -stored[:, ev]
+    assert (agent.td_target((*batch[:4], moved)) - y).abs().amax(1).min() > 0
+    learner = stored.clone()
+    learner[:, 0] = -stored[:, 0]
+    assert torch.equal(agent.td_target((*batch[:4], learner)), y)
+    # a learned evader uses its target actor whatever was stored
+    co = MADDPG(sp, dataclasses.replace(cfg.train, evaders="learned"))
+    assert torch.equal(co.td_target(batch), co.td_target((*batch[:4], moved)))

@@ -21,7 +21,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -144,9 +144,23 @@ class BatchedCritic(nn.Module):
         return self.rest(h).squeeze(-1)
 
 
+class Batch(NamedTuple):
+    """A replay sample of ``K`` joint transitions. ``next_act`` holds the actions the agents took at
+    ``next_obs`` where the trainer knows them (scripted agents' actions; zero where it passed none); the
+    learner uses it for agents that do not learn, and the target actors for those that do."""
+
+    obs: torch.Tensor  # [K, N, D]
+    act: torch.Tensor  # [K, N, 2]
+    rew: torch.Tensor  # [K, N]
+    next_obs: torch.Tensor  # [K, N, D]
+    next_act: torch.Tensor  # [K, N, 2]
+
+
 class ReplayBuffer:
     """Preallocated ring buffer of joint transitions (obs ``[N, D]``, actions ``[N, 2]``, rewards ``[N]``,
-    next obs ``[N, D]``), float32 on ``device``."""
+    next obs ``[N, D]``, next actions ``[N, 2]``), float32 on ``device``."""
+
+    FIELDS = ("obs", "act", "rew", "next_obs", "next_act")
 
     def __init__(self, capacity: int, n_agents: int, obs_dim: int, act_dim: int = 2,
                  device: str | torch.device = "cpu") -> None:
@@ -157,43 +171,52 @@ class ReplayBuffer:
         self.act = torch.zeros(capacity, n_agents, act_dim, **kw)
         self.rew = torch.zeros(capacity, n_agents, **kw)
         self.next_obs = torch.zeros(capacity, n_agents, obs_dim, **kw)
+        self.next_act = torch.zeros(capacity, n_agents, act_dim, **kw)
         self.ptr = 0
         self.size = 0
 
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs: Any, act: Any, rew: Any, next_obs: Any) -> None:
-        """Append a batch of ``B`` transitions (numpy or torch), wrapping around when full."""
-        tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in (obs, act, rew, next_obs)]
+    def add(self, obs: Any, act: Any, rew: Any, next_obs: Any, next_act: Any = None) -> None:
+        """Append a batch of ``B`` transitions (numpy or torch), wrapping around when full. ``next_act``
+        ``[B, N, 2]``: the actions taken at ``next_obs`` (needed for scripted agents, whose next action no
+        target actor knows); None stores zeros (the static evaders' action)."""
+        if next_act is None:
+            next_act = torch.zeros_like(torch.as_tensor(act, dtype=torch.float32))
+        values = (obs, act, rew, next_obs, next_act)
+        tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in values]
         b = tensors[0].shape[0]
         if b > self.capacity:  # only the newest fit
             tensors = [t[-self.capacity:] for t in tensors]
             b = self.capacity
         idx = (self.ptr + torch.arange(b, device=self.device)) % self.capacity
-        for store, t in zip((self.obs, self.act, self.rew, self.next_obs), tensors):
-            store[idx] = t
+        for name, t in zip(self.FIELDS, tensors):
+            getattr(self, name)[idx] = t
         self.ptr = (self.ptr + b) % self.capacity
         self.size = min(self.size + b, self.capacity)
 
-    def sample(self, batch: int, generator: torch.Generator) -> tuple[torch.Tensor, ...]:
+    def sample(self, batch: int, generator: torch.Generator) -> Batch:
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         idx = torch.randint(0, self.size, (batch,), generator=generator, device=self.device)
-        return self.obs[idx], self.act[idx], self.rew[idx], self.next_obs[idx]
+        return Batch(*(getattr(self, name)[idx] for name in self.FIELDS))
 
     def state_dict(self) -> dict[str, Any]:
         n = self.size
         # keep the order of insertion so that a reload with a different capacity keeps the newest
         order = (torch.arange(n, device=self.device) + (self.ptr - n)) % self.capacity
-        return {"obs": self.obs[order].cpu(), "act": self.act[order].cpu(), "rew": self.rew[order].cpu(),
-                "next_obs": self.next_obs[order].cpu()}
+        return {name: getattr(self, name)[order].cpu() for name in self.FIELDS}
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.ptr = 0
         self.size = 0
         if sd["obs"].shape[0]:
-            self.add(sd["obs"], sd["act"], sd["rew"], sd["next_obs"])
+            if "next_act" not in sd:
+                log.warning("replay buffer saved before next actions were stored: its %d transitions get zero "
+                            "next actions (scripted agents' TD targets bootstrap on a zero action until they "
+                            "are overwritten)", sd["obs"].shape[0])
+            self.add(sd["obs"], sd["act"], sd["rew"], sd["next_obs"], sd.get("next_act"))
 
 
 def clip_grad_norm_per_agent(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
@@ -243,6 +266,7 @@ class MADDPG:
         if cfg.evaders in ("static", "scripted"):  # scripted evaders' actions come from the trainer
             learn[spec.team.n_team:] = 0.0
         self.learn_mask = learn  # [N] 1 for agents whose actor and critic train
+        self._learns = learn > 0
         self._eye = torch.eye(n, device=self.device).view(n, 1, n, 1)
         self.updates = 0
         # the int8-robustness penalty's observation ranges per agent ([N, 1, D], zero on the padding columns)
@@ -269,18 +293,33 @@ class MADDPG:
         return a.transpose(0, 1)
 
     # ------------------------------------------------------------------------------------- learning
+    @torch.no_grad()
+    def td_target(self, batch: Sequence[torch.Tensor]) -> torch.Tensor:
+        """``y_i = r_i x reward_scale + gamma x Q'_i(O', a'_1 .. a'_N)`` for every agent ``[N, K]``; a
+        ``batch`` without next actions (4 tensors) bootstraps non-learning agents on a zero action."""
+        rew, next_obs = batch[2], batch[3]
+        k = next_obs.shape[0]
+        next_act = self.target_next_actions(next_obs, batch[4] if len(batch) > 4 else None)
+        q_next = self.critics_tgt(next_obs.reshape(k, -1), next_act.reshape(k, -1))
+        return rew.t() * self.cfg.reward_scale + self.cfg.gamma * q_next
+
+    def target_next_actions(self, next_obs: torch.Tensor, stored: torch.Tensor | None) -> torch.Tensor:
+        """Next actions ``[K, N, 2]`` of the TD target: the target actors' for agents that learn, the stored
+        ones (what the scripted agents did; zero when none were stored) for those that do not."""
+        tgt = self.actors_tgt(next_obs.transpose(0, 1)).transpose(0, 1)
+        if stored is None:
+            stored = torch.zeros_like(tgt)
+        return torch.where(self._learns.view(1, -1, 1), tgt, stored)
+
     def update(self, batch: tuple[torch.Tensor, ...]) -> dict[str, float]:
         """One critic step, one actor step and a soft target update for every agent at once."""
-        obs, act, rew, next_obs = batch  # [K, N, D], [K, N, 2], [K, N], [K, N, D]
+        obs, act, rew, next_obs = batch[:4]  # [K, N, D], [K, N, 2], [K, N], [K, N, D]
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
         obs_flat = obs.reshape(k, -1)
         act_flat = act.reshape(k, -1)
         mask = self.learn_mask
-        with torch.no_grad():
-            next_act = self.actors_tgt(next_obs.transpose(0, 1)) * mask.view(-1, 1, 1)  # [N, K, 2]
-            q_next = self.critics_tgt(next_obs.reshape(k, -1), next_act.transpose(0, 1).reshape(k, -1))
-            y = rew.t() * cfg.reward_scale + cfg.gamma * q_next  # [N, K]
+        y = self.td_target(batch)
         obs_feat = self.critics.obs_features(obs_flat)
         q = self.critics(obs_flat, act_flat, obs_feat)
         critic_loss_n = (q - y).pow(2).mean(1)  # [N]
