@@ -1,0 +1,394 @@
+"""The multi-drone separation filter every velocity setpoint passes before the geofence.
+
+Frame: the ground station's world frame, horizontal x, y [m]; drones fly at one mission height, and the
+horizontal distance never exceeds the 3-D one, so keeping horizontal centres ``min_distance`` apart keeps
+the bodies apart whatever their heights.
+
+Method: a braking-aware control barrier, solved jointly for every controlled drone as a QP with OSQP, with a
+closed-form pairwise fallback. Why this and not the alternatives the issue names:
+
+- reciprocal velocity obstacles (ORCA) assume that the velocity is reached at once and say nothing about
+  the acceleration limit or the watchdog; the buffered-Voronoi rule of the Crazyflie firmware
+  (``collision_avoidance.c``) is a per-drone position rule that halves every gap whether or not it is needed,
+  so it changes commands that were safe. A barrier that is a bound on the motion itself both leaves safe
+  commands alone (the solution is the command when no constraint is active) and gives a proof we can test.
+
+The motion model the barrier is proved for (and that ``tests/test_separation.py`` simulates): over the next
+``latency + period`` seconds drone ``i`` flies some velocity inside the triangle of its measured velocity
+``v_i``, its previous command ``w_i`` and its new command ``u_i`` (first-order tracking of a held command and
+one period of latency, during which the previous command is still flown, stay there), then brakes along a
+straight line at ``max_decel``. Along the unit vector ``n`` from drone ``j`` to drone ``i`` drone ``i`` then
+closes in by at most
+
+    H_i * max(k_i, -n.u_i),   k_i = max(0, -n.v_i, -n.w_i),   H_i = latency + period + s_i / (2 max_decel)
+
+where ``s_i >= |v_i|, |w_i|, |u_i|`` bounds its speed (an octagon keeps ``|u_i| <= s_i``). The centre distance
+is at least the projection on ``n``, so a pair stays ``min_distance`` apart when the two bounds sum to at
+most the gap ``c = |p_i - p_j| - min_distance``. ``max(a, b) + max(c, d) <= g`` is four linear inequalities, one
+of them constant, so the constraint set is a polytope and the least change of the commands is a QP:
+
+    minimise sum |u_i - desired_i|^2  over the controlled drones
+    such that, per pair: H_i(-n.u_i) + H_j(n.u_j) <= c, H_i(-n.u_i) <= c - H_j k_j, H_j(n.u_j) <= c - H_i k_i
+
+An obstacle (holding, landing, lost, on the ground: it does not obey the filter) is a drone whose command is
+its measured velocity. ``u = 0`` satisfies every pair whose constant part ``H_i k_i + H_j k_j <= c`` holds, so
+once the drones of pairs whose own momentum already breaks it are braked (``u = 0``, the most the filter can
+do for them), the QP is feasible by construction. Pairs already closer than ``min_distance`` (position noise)
+may only move apart (``-n.u_i <= 0``). Safe by construction is also the closed-form fallback used when OSQP
+does not return a verified solution: each drone scales its own command down to its half of each gap.
+Every result is checked against the constraints before it is returned; NaN input, coincident drones or a
+failed check give a brake (zero velocity), never an unsafe command.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from runtime.spec import SpecError, SwarmSpec, from_mapping
+
+log = logging.getLogger(__name__)
+
+POSITION_ERROR = 0.1
+"""Largest horizontal position-estimate error of one drone [m] that ``min_distance`` absorbs: the Loco
+Positioning System's error is about 0.03 m standard deviation per axis (the simulator's ``lps_sigma_xy``),
+so 0.1 m is over 3 sigma in the plane."""
+COINCIDENT = 1e-6
+"""Centres closer than this [m] have no direction between them: both drones brake."""
+VERIFY_TOL = 1e-9
+"""Slack [m] of the final constraint check (rounding of the constraint arithmetic)."""
+QP_MARGIN = 1e-6
+"""The QP's constraints are tightened by this [m], so that OSQP's tolerance cannot end outside them."""
+_OCTAGON = np.array([[math.cos(k * math.pi / 4), math.sin(k * math.pi / 4)] for k in range(8)])
+_APOTHEM = math.cos(math.pi / 8)
+"""An octagon with apothem ``s cos(pi/8)`` lies inside the circle of radius ``s``."""
+
+
+def default_min_distance(spec: SwarmSpec | None = None) -> float:
+    """Two of the spec's largest body radii plus both drones' ``POSITION_ERROR`` [m, centre to centre]."""
+    spec = spec or SwarmSpec()
+    biggest = max(spec.pursuer.radius, spec.scout.radius, spec.evader.radius)
+    return 2.0 * biggest + 2.0 * POSITION_ERROR
+
+
+@dataclass(frozen=True)
+class SeparationConfig:
+    """The separation filter (TOML table ``[separation]`` of a fleet file)."""
+
+    enabled: bool = True
+    """Filter every velocity setpoint. False only for comparisons (``--no-separation``): drones may touch."""
+    min_distance: float = field(default_factory=default_min_distance)
+    """Smallest horizontal centre-to-centre distance between two drones [m]; default two body radii of
+    ``runtime.spec`` plus ``POSITION_ERROR`` for each drone (0.35 m with the default spec)."""
+    capture_distance: float = field(default_factory=lambda: SwarmSpec().sensing.sensing_range)
+    """A pursuer-team drone within this distance of an evader has captured it [m] (default the spec's
+    sensing range); in flight a capture is never contact."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise SpecError(f"separation.enabled: must be true or false, got {self.enabled!r}")
+        for name in ("min_distance", "capture_distance"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise SpecError(f"separation.{name}: must be a finite number > 0 [m], got {v!r}")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], where: str = "separation") -> "SeparationConfig":
+        return from_mapping(cls, data, where)
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What the barrier assumes of the vehicles."""
+
+    min_distance: float
+    """[m]"""
+    period: float
+    """How long one command is held, the setpoint period [s]."""
+    max_decel: float
+    """Deceleration every drone is sure to reach when braking [m/s^2] (the fence's ``max_decel``)."""
+    max_speed: float
+    """Speed bound [m/s] used for a drone flying slower than this (the fence's ``max_speed``)."""
+    latency: float | None = None
+    """Measurement to command in effect [s]; None: one ``period``."""
+
+    @property
+    def horizon(self) -> float:
+        return self.period + (self.period if self.latency is None else self.latency)
+
+
+@dataclass
+class SeparationResult:
+    velocity: np.ndarray
+    """[N, 2] filtered commands [m/s]; zero for obstacles (the filter does not command them)."""
+    braked: np.ndarray
+    """[N] bool: controlled drones braked because nothing safer was possible (or an input was bad)."""
+    method: str
+    """"unchanged" (the commands were safe), "qp", "pairwise" (fallback), "brake" (bad input), "none"."""
+
+
+@dataclass
+class _Pairs:
+    """The constraint data of every pair that can matter: index arrays and per-pair numbers."""
+
+    i: np.ndarray
+    j: np.ndarray
+    n: np.ndarray
+    """[P, 2] unit vector from j to i."""
+    gap: np.ndarray
+    """[P] distance - min_distance [m]; negative for pairs already too close."""
+    hk_i: np.ndarray
+    """[P] H_i k_i: how far i closes in on its momentum and previous command alone [m]."""
+    hk_j: np.ndarray
+    close: np.ndarray
+    """[P] bool: already closer than min_distance (may only move apart)."""
+
+
+def _speed_bounds(vel: np.ndarray, prev: np.ndarray, desired: np.ndarray, lim: Limits) -> np.ndarray:
+    s = np.maximum(np.linalg.norm(vel, axis=1), np.linalg.norm(prev, axis=1))
+    return np.maximum(np.maximum(s, lim.max_speed), np.linalg.norm(desired, axis=1) / _APOTHEM)
+
+
+def _pairs(pos, vel, prev, s, active, lim: Limits) -> tuple[_Pairs, np.ndarray, np.ndarray]:
+    """Pairs with at least one ``active`` drone near enough to matter; returns them, the per-drone H and the
+    drones of coincident pairs."""
+    h = lim.horizon + s / (2.0 * lim.max_decel)
+    i, j = np.triu_indices(len(pos), 1)
+    keep = active[i] | active[j]
+    i, j = i[keep], j[keep]
+    delta = pos[i] - pos[j]
+    dist = np.hypot(delta[:, 0], delta[:, 1])
+    reach = h[i] * s[i] + h[j] * s[j]  # neither can close in by more
+    near = dist - lim.min_distance <= reach
+    i, j, delta, dist = i[near], j[near], delta[near], dist[near]
+    coincident = dist < COINCIDENT
+    bad = np.zeros(len(pos), dtype=bool)
+    bad[i[coincident]] = bad[j[coincident]] = True
+    ok = ~coincident
+    i, j, delta, dist = i[ok], j[ok], delta[ok], dist[ok]
+    n = delta / dist[:, None]
+    k_i = np.maximum(0.0, np.maximum(-(n * vel[i]).sum(1), -(n * prev[i]).sum(1)))
+    k_j = np.maximum(0.0, np.maximum((n * vel[j]).sum(1), (n * prev[j]).sum(1)))
+    gap = dist - lim.min_distance
+    return _Pairs(i, j, n, gap, h[i] * k_i, h[j] * k_j, gap < 0), h, bad
+
+
+def _rows(pp: _Pairs, h: np.ndarray, free: np.ndarray, col: np.ndarray) -> tuple[list, list]:
+    """Linear constraints ``sum coef * u[col] <= rhs`` on the free drones' commands: (entries, rhs)."""
+    entries: list[list[tuple[int, np.ndarray]]] = []
+    rhs: list[float] = []
+    for q in range(len(pp.i)):
+        i, j, n, g = pp.i[q], pp.j[q], pp.n[q], pp.gap[q]
+        fi, fj = free[i], free[j]
+        if pp.close[q]:  # already too close: neither free drone may close in
+            if fi:
+                entries.append([(col[i], -n)])
+                rhs.append(0.0)
+            if fj:
+                entries.append([(col[j], n)])
+                rhs.append(0.0)
+            continue
+        ai, aj = -h[i] * n, h[j] * n  # H_i(-n.u_i), H_j(n.u_j) as coefficient vectors
+        if fi and fj:
+            entries.append([(col[i], ai), (col[j], aj)])
+            rhs.append(g)
+        if fi:
+            entries.append([(col[i], ai)])
+            rhs.append(g - pp.hk_j[q])
+        if fj:
+            entries.append([(col[j], aj)])
+            rhs.append(g - pp.hk_i[q])
+    return entries, rhs
+
+
+def _violation(entries, rhs, u: np.ndarray, col: np.ndarray, free_idx: np.ndarray) -> float:
+    worst = 0.0
+    x = u[free_idx]
+    for terms, b in zip(entries, rhs):
+        lhs = sum(float(c @ x[k]) for k, c in terms)
+        worst = max(worst, lhs - b)
+    return worst
+
+
+def _solve_qp(entries, rhs, desired: np.ndarray, s: np.ndarray) -> np.ndarray | None:
+    """OSQP over the free drones' commands; None when it does not report a solution."""
+    import osqp
+    from scipy import sparse
+
+    m = len(desired)
+    rows, cols, vals, b = [], [], [], []
+    r = 0
+    for terms, bound in zip(entries, rhs):
+        for k, c in terms:
+            rows += [r, r]
+            cols += [2 * k, 2 * k + 1]
+            vals += [float(c[0]), float(c[1])]
+        b.append(bound - QP_MARGIN)
+        r += 1
+    for k in range(m):  # |u_k| <= s_k keeps the braking bound H valid
+        for face in _OCTAGON:
+            rows += [r, r]
+            cols += [2 * k, 2 * k + 1]
+            vals += [float(face[0]), float(face[1])]
+            b.append(s[k] * _APOTHEM)
+            r += 1
+    a = sparse.csc_matrix((vals, (rows, cols)), shape=(r, 2 * m))
+    p = sparse.identity(2 * m, format="csc") * 2.0
+    prob = osqp.OSQP()
+    prob.setup(p, -2.0 * desired.reshape(-1), a, np.full(r, -np.inf), np.array(b), verbose=False,
+               polishing=True, eps_abs=1e-7, eps_rel=1e-7, max_iter=10000)
+    res = prob.solve(raise_error=False)
+    if res.info.status not in ("solved", "solved inaccurate") or res.x is None or not np.all(np.isfinite(res.x)):
+        return None
+    return np.asarray(res.x, dtype=float).reshape(m, 2)
+
+
+def _pairwise(pp: _Pairs, h: np.ndarray, free: np.ndarray, desired: np.ndarray) -> np.ndarray:
+    """Closed-form fallback: each free drone scales its own command down to its share of each gap (half the
+    slack of a pair of free drones, all of it against an obstacle); only moving apart when too close."""
+    scale = np.ones(len(desired))
+    for q in range(len(pp.i)):
+        i, j, n = pp.i[q], pp.j[q], pp.n[q]
+        slack = pp.gap[q] - pp.hk_i[q] - pp.hk_j[q]
+        both = free[i] and free[j]
+        for me, sign, hk in ((i, -1.0, pp.hk_i[q]), (j, 1.0, pp.hk_j[q])):
+            if not free[me]:
+                continue
+            closing = sign * float(n @ desired[me])
+            if closing <= 0:
+                continue
+            budget = 0.0 if pp.close[q] else max(hk + (slack / 2 if both else slack), 0.0)
+            scale[me] = min(scale[me], budget / (h[me] * closing))
+    return desired * np.clip(scale, 0.0, 1.0)[:, None]
+
+
+def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np.ndarray, controlled: np.ndarray,
+                      limits: Limits, previous: np.ndarray | None = None, use_qp: bool = True) -> SeparationResult:
+    """Filtered horizontal velocity commands [N, 2] [m/s] for the ``controlled`` drones (see the module
+    docstring). ``positions`` [N, 2+] [m] and ``velocities`` [N, 2+] [m/s] of every drone, measured;
+    ``desired`` [N, 2] the commands asked for (rows of obstacles are ignored); ``previous`` [N, 2] the commands
+    now in flight (default: the measured velocities)."""
+    pos = np.asarray(positions, dtype=float)[:, :2]
+    vel = np.asarray(velocities, dtype=float)[:, :2]
+    want = np.array(desired, dtype=float).reshape(-1, 2)
+    ctrl = np.asarray(controlled, dtype=bool).copy()
+    prev = vel.copy() if previous is None else np.asarray(previous, dtype=float)[:, :2].copy()
+    n = len(pos)
+    out = np.zeros((n, 2))
+    if not ctrl.any():
+        return SeparationResult(out, np.zeros(n, dtype=bool), "none")
+    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel))):
+        return SeparationResult(out, ctrl.copy(), "brake")  # a drone we cannot place: nobody may move
+    bad_cmd = ctrl & ~np.all(np.isfinite(want), axis=1)
+    want[~ctrl | bad_cmd] = 0.0
+    prev[~ctrl] = vel[~ctrl]  # an obstacle's command is what it does
+    prev[~np.all(np.isfinite(prev), axis=1)] = vel[~np.all(np.isfinite(prev), axis=1)]
+    s = _speed_bounds(vel, prev, want, limits)
+    pp, h, braked = _pairs(pos, vel, prev, s, ctrl, limits)
+    braked &= ctrl
+    # pairs whose momentum alone breaks the bound: their controlled drones brake (the most they can do)
+    hopeless = ~pp.close & (pp.hk_i + pp.hk_j > pp.gap)
+    braked[pp.i[hopeless]] |= ctrl[pp.i[hopeless]]
+    braked[pp.j[hopeless]] |= ctrl[pp.j[hopeless]]
+    braked |= bad_cmd
+    free = ctrl & ~braked
+    want[braked] = 0.0
+    free_idx = np.flatnonzero(free)
+    col = np.full(n, -1)
+    col[free_idx] = np.arange(len(free_idx))
+    keep = ~hopeless
+    pp = _Pairs(pp.i[keep], pp.j[keep], pp.n[keep], pp.gap[keep], pp.hk_i[keep], pp.hk_j[keep], pp.close[keep])
+    entries, rhs = _rows(pp, h, free, col)
+    if _violation(entries, rhs, want, col, free_idx) <= VERIFY_TOL:
+        out[free] = want[free]
+        return SeparationResult(out, braked, "unchanged")
+    method = "pairwise"
+    u = None
+    if use_qp and len(free_idx):
+        x = _solve_qp(entries, rhs, want[free_idx], s[free_idx])
+        if x is not None:
+            u = np.zeros((n, 2))
+            u[free_idx] = x
+            if _violation(entries, rhs, u, col, free_idx) <= VERIFY_TOL and np.all(
+                    np.linalg.norm(x, axis=1) <= s[free_idx] + VERIFY_TOL):
+                method = "qp"
+            else:
+                log.debug("separation QP solution failed the check: pairwise fallback")
+                u = None
+    if u is None:
+        u = _pairwise(pp, h, free, want)
+        if _violation(entries, rhs, u, col, free_idx) > VERIFY_TOL:  # cannot happen; never send it anyway
+            log.error("separation fallback failed its own check: braking every controlled drone")
+            return SeparationResult(out, ctrl.copy(), "brake")
+    out[free] = u[free]
+    return SeparationResult(out, braked, method)
+
+
+@dataclass
+class Snapshot:
+    """What the filter is fed: every drone the ground station can place, in one order."""
+
+    ids: list[str]
+    positions: np.ndarray
+    """[N, 2+] measured [m]"""
+    velocities: np.ndarray
+    """[N, 2+] measured [m/s]"""
+    desired: np.ndarray
+    """[N, 2] commands asked for [m/s] (any value for obstacles)"""
+    controlled: np.ndarray
+    """[N] bool: obeys the filter (flying in the mission); the others are obstacles"""
+    previous: np.ndarray
+    """[N, 2] commands in flight [m/s]"""
+
+
+class JointFilter:
+    """The joint solve shared by every link's receive thread: whichever drone's setpoint falls due first after
+    ``interval`` s re-solves for all drones from ``gather()``; the others read the cached result. One QP per
+    control period instead of one per setpoint keeps the per-setpoint cost to a lookup, and a joint solution
+    gives each drone of a pair its share of the gap. The age of the cache is part of ``limits.latency``."""
+
+    def __init__(self, limits: Limits, gather, interval: float, clock=None) -> None:
+        import threading
+        import time
+        self.limits = limits
+        self.interval = interval
+        self._gather = gather
+        self._clock = clock or time.monotonic
+        self._lock = threading.Lock()
+        self._t = -math.inf
+        self._cache: dict[str, tuple[np.ndarray, bool]] = {}
+        self.solves = 0
+        self.methods: dict[str, int] = {}
+        self.braked = 0
+        """Setpoints handed out as a brake because nothing safer was possible."""
+
+    def command(self, drone_id: str, now: float | None = None) -> np.ndarray:
+        """Filtered horizontal command [m/s] of ``drone_id``; zero (a brake) when the drone is not in the
+        filter's picture (not controlled, or its state is unknown)."""
+        now = self._clock() if now is None else now
+        with self._lock:
+            if now - self._t >= self.interval or drone_id not in self._cache:
+                self._solve(now)
+            v, braked = self._cache.get(drone_id, (np.zeros(2), True))
+            self.braked += int(braked)
+            return v.copy()
+
+    def _solve(self, now: float) -> None:
+        snap: Snapshot = self._gather()
+        self._t = now
+        self.solves += 1
+        if not snap.ids:
+            self._cache = {}
+            return
+        res = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled, self.limits,
+                                snap.previous)
+        self.methods[res.method] = self.methods.get(res.method, 0) + 1
+        self._cache = {d: (res.velocity[k], bool(res.braked[k])) for k, d in enumerate(snap.ids)
+                       if snap.controlled[k]}
+
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            return {"solves": self.solves, "methods": dict(self.methods), "braked_setpoints": self.braked}
