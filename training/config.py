@@ -138,6 +138,16 @@ class TrainConfig:
     """"learned": evaders train at the same time (competitive co-training); "static": evaders hold still
     (their actors are not trained; used for the small learning check); "scripted": evaders flee as
     ``training.baselines.FleeingEvaders`` (their actors are not trained)."""
+    opponent_mix: float = 0.0
+    """Opponent mixing (fictitious self-play, ``training.opponents``): the share of episodes whose evaders are
+    not the learners but a scripted evader of ``training.evader_suite.TrainingPool`` or a frozen snapshot of
+    earlier learned evaders; 0 disables (the paper's co-training) [1]."""
+    opponent_scripted: float = 0.5
+    """Of the mixed episodes, the share with scripted evaders (the rest meet snapshots) [1]."""
+    opponent_snapshot_every: int = 1_000
+    """Env steps between two snapshots of the learned evaders."""
+    opponent_snapshots: int = 5
+    """Newest snapshots kept (older ones are dropped)."""
     log_every: int = 100
     """Env steps between two rows of metrics.csv and TensorBoard scalars."""
     checkpoint_every: int = 2_000
@@ -148,10 +158,31 @@ class TrainConfig:
     """torch CPU threads."""
     device: str = "cpu"
     """torch device of the networks and the replay buffer: "cpu", "cuda" or "cuda:K"."""
+    algorithm: str = "maddpg"
+    """"maddpg": one critic per agent (the paper's); "matd3": twin critics with the smaller target, target
+    policy smoothing and delayed actor and target updates (Ackermann et al. 2019, TD3 for many agents)."""
+    policy_delay: int = 2
+    """"matd3" only: critic updates per actor update (and per soft target update)."""
+    target_noise: float = 0.2
+    """"matd3" only: std of the Gaussian noise on the target actors' next actions (target policy smoothing)
+    [1, normalised action]."""
+    target_noise_clip: float = 0.5
+    """"matd3" only: the target smoothing noise is clipped to +-this [1, normalised action]."""
+    critic: str = "local"
+    """Centralized critic input: "local": every agent's observation concatenated (N x max_obs_dim; the
+    paper's); "global": the compact global state (every agent's position and velocity, every obstacle's
+    centre and radius: 4N + 3K floats, ``training.maddpg.global_state``). Both also take every action."""
+    share_params: bool = False
+    """Parameter sharing within a role: one actor and one critic per role, trained on all of that role's
+    agents' transitions (the critic gets a one-hot of which agent of the role it evaluates); still exported
+    as one actor per agent."""
+    obs_scaling: bool = False
+    """Actors see observations mapped from the spec's per-field ranges (``spec.layout(role).bounds()``) to
+    [-1, 1]; the map is folded into the first layer on export, so exported actors take raw observations."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "n_envs", "batch_size", "buffer_size", "update_every", "log_every",
-                     "checkpoint_every", "threads", "noise_decay_steps"):
+                     "checkpoint_every", "threads", "noise_decay_steps", "policy_delay"):
             if getattr(self, name) < 1:
                 raise SpecError(f"train.{name}: must be >= 1, got {getattr(self, name)!r}")
         for name in ("warmup_steps", "updates_per_round"):
@@ -164,7 +195,17 @@ class TrainConfig:
         for name in ("actor_lr", "critic_lr", "reward_scale"):
             if not getattr(self, name) > 0:
                 raise SpecError(f"train.{name}: must be > 0, got {getattr(self, name)!r}")
-        for name in ("noise_std", "noise_std_final", "grad_clip", "action_reg", "int8_robustness"):
+        for name in ("opponent_mix", "opponent_scripted"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise SpecError(f"train.{name}: must be in [0, 1], got {getattr(self, name)!r}")
+        for name in ("opponent_snapshot_every", "opponent_snapshots"):
+            if getattr(self, name) < 1:
+                raise SpecError(f"train.{name}: must be >= 1, got {getattr(self, name)!r}")
+        if self.opponent_mix > 0 and self.evaders != "learned":
+            raise SpecError(f"train.opponent_mix: mixes opponents for learned evaders only (train.evaders = "
+                            f"{self.evaders!r}): set it to 0 or train.evaders = 'learned'")
+        for name in ("noise_std", "noise_std_final", "grad_clip", "action_reg", "int8_robustness", "target_noise",
+                     "target_noise_clip"):
             if not getattr(self, name) >= 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
         for name in ("actor_hidden", "critic_hidden"):
@@ -177,6 +218,13 @@ class TrainConfig:
             raise SpecError(f"train.evaders: {self.evaders!r} is not one of 'learned', 'static', 'scripted'")
         if not (self.device == "cpu" or self.device == "cuda" or self.device.startswith("cuda:")):
             raise SpecError(f"train.device: {self.device!r} is not 'cpu', 'cuda' or 'cuda:K'")
+        if self.algorithm not in ("maddpg", "matd3"):
+            raise SpecError(f"train.algorithm: {self.algorithm!r} is not one of 'maddpg', 'matd3'")
+        if self.critic not in ("local", "global"):
+            raise SpecError(f"train.critic: {self.critic!r} is not one of 'local', 'global'")
+        for name in ("share_params", "obs_scaling"):
+            if not isinstance(getattr(self, name), bool):
+                raise SpecError(f"train.{name}: must be true or false, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)

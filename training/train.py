@@ -36,6 +36,7 @@ from training.checkpoint import save_actors
 from training.config import ExperimentConfig
 from training.env import PursuitEnv
 from training.maddpg import MADDPG, ReplayBuffer
+from training.opponents import OpponentMixer
 
 log = logging.getLogger(__name__)
 
@@ -157,14 +158,11 @@ class Trainer:
         self.spec = cfg.spec
         self.env = PursuitEnv(cfg.spec, cfg.rewards, n_envs=tc.n_envs, seed=tc.seed)
         self.agent = MADDPG(cfg.spec, tc)
-        self.scripted = None
-        if tc.evaders == "scripted":
-            from training.baselines import FleeingEvaders
-            self.scripted = FleeingEvaders()
+        self.np_rng = np.random.default_rng(tc.seed + 3)
+        self.mixer = OpponentMixer(cfg.spec, tc, np.random.default_rng(tc.seed + 4))
         self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
         self.sample_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 1)
         self.noise_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 2)
-        self.np_rng = np.random.default_rng(tc.seed + 3)
         self.env_step = 0
         self.elapsed = 0.0  # training wall time of previous sessions [s]
         team = cfg.spec.team
@@ -213,6 +211,9 @@ class Trainer:
         self.noise_gen.set_state(st["noise_gen"].cpu() if self.tc.device == "cpu" else st["noise_gen"])
         self.np_rng.bit_generator.state = st["np_rng"]
         self.env.world.rng.bit_generator.state = st["world_rng"]
+        if "opponents" in st:
+            self.mixer.load_state_dict(st["opponents"], self.agent.actors)
+            self.mixer.rng.bit_generator.state = st["opponent_rng"]
         bpath = ckpt_dir / "buffer.pt"
         if bpath.is_file():
             self.buffer.load_state_dict(torch.load(bpath, map_location=self.tc.device, weights_only=True))
@@ -254,7 +255,8 @@ class Trainer:
               "env_step": self.env_step, "elapsed": self.elapsed + self._session_time(),
               "sample_gen": self.sample_gen.get_state(), "noise_gen": self.noise_gen.get_state(),
               "np_rng": self.np_rng.bit_generator.state, "world_rng": self.env.world.rng.bit_generator.state,
-              "config": self.cfg.to_dict()}
+              "config": self.cfg.to_dict(), "opponents": self.mixer.state_dict(),
+              "opponent_rng": self.mixer.rng.bit_generator.state}
         if self.tc.checkpoint_buffer:
             _save_torch(self.buffer.state_dict(), self.ckpt_dir / "buffer.pt")
         _save_torch(st, self.ckpt_dir / "state.pt")
@@ -272,17 +274,32 @@ class Trainer:
         frac = min(1.0, self.env_step / tc.noise_decay_steps)
         return tc.noise_std + frac * (tc.noise_std_final - tc.noise_std)
 
-    def _actions(self, obs: np.ndarray) -> np.ndarray:
+    def _actions(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Actions ``[B, N, 2]`` for every env and ``given`` ``[B, N]``: True where the action is not a learner's
+        (scripted or frozen evaders, static agents), so that the TD target bootstraps on it."""
         tc = self.tc
+        learns = self.agent.learn_mask.cpu().numpy() > 0
         if self.env_step < tc.warmup_steps:
             a = self.np_rng.uniform(-1.0, 1.0, (tc.n_envs, self.spec.n_agents, 2))
-            a = a * self.agent.learn_mask.cpu().numpy()[None, :, None]
+            a = a * learns[None, :, None]
         else:
             a = self.agent.act(obs, self.noise_std(), self.noise_gen).cpu().numpy().astype(np.float64)
-        if self.scripted is not None:
-            nt = self.spec.team.n_team
-            a[:, nt:] = self.scripted.act(obs, self.env)[:, nt:]
-        return a
+        given = np.broadcast_to(~learns, a.shape[:2]).copy()
+        if self.mixer.active:
+            given |= self.mixer.apply(obs, a, self.env, self.agent.device)
+        return a, given
+
+    def _store(self, pending: tuple, actions: np.ndarray | None, given: np.ndarray | None) -> None:
+        """Store the previous step's transitions with the next actions now known: the actions really taken
+        where they are given (NaN elsewhere: the learners' target actors decide). Envs whose episode ended
+        bootstrap on the last given action (the next one was never taken; scripted evaders move smoothly)."""
+        obs, act, rew, next_obs, act_given, done_ids = pending
+        if actions is None:
+            actions, given = act, act_given
+        next_act = np.where(given[..., None], actions, np.nan)
+        if done_ids is not None:
+            next_act[done_ids] = np.where(act_given[done_ids, :, None], act[done_ids], np.nan)
+        self.buffer.add(obs, act, rew, next_obs, next_act)
 
     def run(self, progress: bool = True) -> TrainResult:
         tc = self.tc
@@ -297,20 +314,28 @@ class Trainer:
         start_step, start_updates = self.env_step, self.agent.updates
         last_t, last_step, last_updates = self._t0, self.env_step, self.agent.updates
         obs = self.env.reset()
+        self.mixer.reset(np.arange(tc.n_envs))
         self.returns[:] = 0.0
         interrupted = False
         restore = _install_stop_handlers()
+        pending = None  # the last step's transitions, stored once the next actions are known
         try:
             while self.env_step < tc.steps:
-                actions = self._actions(obs)
+                actions, given = self._actions(obs)
+                if pending is not None:
+                    self._store(pending, actions, given)
+                    pending = None
                 next_obs, rew, done, info = self.env.step(actions)
-                store_next = next_obs
+                store_next, done_ids = next_obs, None
                 if done.any():
+                    done_ids = info["final_env_ids"]
                     store_next = next_obs.copy()
-                    store_next[info["final_env_ids"]] = info["final_obs"]
-                self.buffer.add(obs, actions, rew, store_next)
+                    store_next[done_ids] = info["final_obs"]
+                    self.mixer.reset(done_ids)
+                pending = (obs, actions, rew, store_next, given, done_ids)
                 obs = next_obs
                 self.env_step += 1
+                self.mixer.maybe_snapshot(self.env_step, self.agent.actors)
                 self._record(win, rew, done, info)
                 if (self.env_step >= tc.warmup_steps and len(self.buffer) >= tc.batch_size
                         and self.env_step % tc.update_every == 0):
@@ -337,6 +362,8 @@ class Trainer:
             log.warning("interrupted at env step %d: saving a checkpoint (continue with --resume)", self.env_step)
         finally:
             restore()
+            if pending is not None:  # the run ends here: its last step's next actions are the last given ones
+                self._store(pending, None, None)
             if bar is not None:
                 bar.close()
         self.save_checkpoint()
