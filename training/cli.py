@@ -59,12 +59,24 @@ def _positive_int(text: str) -> int:
 def add_evaluate(sub: Any) -> None:
     p = sub.add_parser(
         "evaluate", help="run a policy for N episodes and report the paper's metrics",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Runs exactly --episodes episodes on evaluation seeds (disjoint from training seeds, see "
                     "training.evaluate), prints the metrics beside the paper's figures and optionally writes "
-                    "them as JSON and draws one episode (run alone on seed S).")
+                    "them as JSON (and Markdown) and draws one episode (run alone on seed S).\n\n"
+                    "Collisions are split by whose fault they are: teammate contacts (pursuer/scout with "
+                    "pursuer/scout),\nteam-obstacle contacts and evader-side contacts (evaders with each other "
+                    "or obstacles); captures apart.",
+        epilog="examples:\n"
+               "  swarm-train evaluate --policy classical --evader suite --episodes 50 --seed 1000\n"
+               "  swarm-train evaluate --models models/role_based --evader both --md results/rb.md\n"
+               "  swarm-train evaluate --models models/role_based --evader suite:wanderer,hider\n"
+               "  swarm-train evaluate --run runs/rb_s0 --evader my_evaders.py:Sneaky\n"
+               "  swarm-train evaluate --run 'runs/rb_s*' --evader suite --md results/rb_seeds.md   "
+               "(mean and min-max over runs)")
     _add_config(p)
     _add_policy(p)
-    p.add_argument("--episodes", type=_positive_int, default=200, metavar="N", help="episodes (default 200)")
+    p.add_argument("--episodes", type=_positive_int, default=200, metavar="N",
+                   help="episodes per evaluated column (default 200)")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="evaluation seed (default 0)")
     p.add_argument("--n-envs", type=_positive_int, default=50, metavar="K",
                    help="episodes stepped together (default 50); the episodes drawn depend on it")
@@ -77,13 +89,23 @@ def add_evaluate(sub: Any) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    if args.run or args.models:
-        from training.learned_eval import cmd_evaluate_learned
-        return cmd_evaluate_learned(args)
+    from training.checkpoint import CheckpointError
+    try:
+        if args.run or args.models:
+            from training.learned_eval import cmd_evaluate_learned
+            return cmd_evaluate_learned(args)
+        return _evaluate_baseline(args)
+    except (CheckpointError, OSError, ValueError) as exc:  # LearnedModelError, EvaderSpecError, PolicyError
+        raise UsageError(str(exc)) from None
+
+
+def _evaluate_baseline(args: argparse.Namespace) -> int:
     from training.baselines import make_policy
     from training.evaluate import EVAL_SEED_OFFSET, PAPER, evaluate, format_table
 
     cfg = _load_config(args.config)
+    if args.evader is not None:
+        return _evaluate_baseline_vs(args, cfg)
     policy = make_policy(args.policy, seed=args.seed, evaders=args.evaders)
     metrics = evaluate(cfg, policy, args.episodes, seed=args.seed, n_envs=args.n_envs,
                        progress=not args.no_progress)
@@ -100,6 +122,45 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.plot:
         _plot(cfg, make_policy(args.policy, seed=args.seed, evaders=args.evaders), args.seed, args.plot,
               f"{label}, {cfg.name}, seed {args.seed}")
+    return 0
+
+
+def _evaluate_baseline_vs(args: argparse.Namespace, cfg) -> int:
+    """``--policy P --evader SPEC`` without a run: the baseline team against each kind SPEC stands for."""
+    from training.baselines import TeamPolicy, make_policy
+    from training.evader_spec import SUITE_MEAN, expand, label, make_evaders
+    from training.evaluate import EVAL_SEED_OFFSET, PAPER, evaluate, format_table, write_text_atomic
+    from training.learned_eval import markdown_table, with_suite_mean
+
+    kinds = expand(args.evader)
+    pursuers = make_policy(args.policy, seed=args.seed).pursuer_team
+    results: dict[str, dict] = {}
+    for kind in kinds:
+        m = evaluate(cfg, TeamPolicy(pursuers, make_evaders(kind, args.seed)), args.episodes, seed=args.seed,
+                     n_envs=args.n_envs, progress=not args.no_progress, desc=f"{args.policy} vs {label(kind)}")
+        results[label(kind)] = {**m, "config": cfg.name, "config_path": str(args.config),
+                                "spec_hash": cfg.spec.hash, "policy": args.policy, "evader": kind,
+                                "seed": args.seed, "n_envs": args.n_envs, "eval_seed_offset": EVAL_SEED_OFFSET}
+    results = with_suite_mean(results, kinds)
+    cols = {f"{args.policy} vs {'suite mean' if k == SUITE_MEAN else k}": v for k, v in results.items()}
+    wall = sum(r["wall_s"] for k, r in results.items() if k != SUITE_MEAN)
+    print(f"{cfg.name}: {args.policy} pursuer team vs {', '.join(label(k) for k in kinds)} evaders, "
+          f"{args.episodes} episodes each, seed {args.seed}, {wall:.1f} s")
+    print(format_table(cols, PAPER.get(cfg.name)))
+    if args.json:
+        _write_json(args.json, results[label(kinds[0])] if len(kinds) == 1 else results)
+        print(f"wrote {args.json}")
+    if args.md:
+        head = (f"{cfg.name}: {args.policy} pursuer team, {args.episodes} held-out episodes per column "
+                f"(evaluation seed {args.seed}, seed offset {EVAL_SEED_OFFSET})\n\n")
+        try:
+            write_text_atomic(args.md, head + markdown_table(cols, PAPER.get(cfg.name)))
+        except OSError as exc:
+            raise UsageError(f"cannot write {args.md!r}: {exc.strerror or exc}") from None
+        print(f"wrote {args.md}")
+    if args.plot:
+        _plot(cfg, TeamPolicy(pursuers, make_evaders(kinds[0], args.seed)), args.seed, args.plot,
+              f"{args.policy} vs {label(kinds[0])}, {cfg.name}, seed {args.seed}")
     return 0
 
 
@@ -150,10 +211,9 @@ def _plot(cfg, policy, seed: int, out: str, title: str) -> None:
 
 
 def _write_json(path: str, doc: dict) -> None:
-    p = Path(path)
+    from training.evaluate import write_text_atomic
     try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
+        write_text_atomic(path, json.dumps(doc, indent=2, sort_keys=True) + "\n")
     except OSError as exc:
         raise UsageError(f"cannot write {path!r}: {exc.strerror or exc}") from None
 
@@ -166,7 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     from training.sweep import add_sweep_parser
     from training.train import add_train_parser
-    adders: list[Callable[[Any], None]] = [add_train_parser, add_evaluate, add_plot, add_sweep_parser]
+    from training.crossplay import add_crossplay
+    adders: list[Callable[[Any], None]] = [add_train_parser, add_evaluate, add_crossplay, add_plot,
+                                           add_sweep_parser]
     for add in adders:
         add(sub)
     return parser

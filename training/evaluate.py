@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
-from typing import Any, Mapping
+from pathlib import Path
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -42,7 +44,11 @@ _LABELS = {
     "tracking_rate": "tracking rate (target within 0.5 m)",
     "coverage": "coverage (episode)",
     "coverage_instant": "coverage (instantaneous)",
-    "collisions_per_episode": "collisions / episode",
+    "collisions_per_episode": "collisions / episode (all)",
+    "team_contacts_per_episode": "  team's own (teammate + obstacle)",
+    "teammate_contacts_per_episode": "  teammate contacts / episode",
+    "team_obstacle_contacts_per_episode": "  team-obstacle contacts / episode",
+    "evader_contacts_per_episode": "  evader-side contacts / episode",
     "captures_per_episode": "captures / episode",
 }
 
@@ -53,7 +59,7 @@ def eval_seed(seed: int, round_index: int) -> np.random.SeedSequence:
 
 
 def evaluate(cfg: ExperimentConfig, policy: Policy, episodes: int, seed: int = 0, n_envs: int = 50,
-             progress: bool = True) -> dict[str, float]:
+             progress: bool = True, desc: str | None = None) -> dict[str, float]:
     """Runs exactly ``episodes`` episodes of ``policy`` in ``cfg``'s world and returns ``summarize``'s dict
     (keys ``runtime.metrics.METRIC_KEYS``) plus ``wall_s``, the seconds it took."""
     if episodes < 1:
@@ -64,7 +70,7 @@ def evaluate(cfg: ExperimentConfig, policy: Policy, episodes: int, seed: int = 0
     rounds = math.ceil(episodes / n_envs)
     records = []
     t0 = time.perf_counter()
-    bar = tqdm(total=episodes, desc=f"evaluate {cfg.name}", unit="ep", disable=not progress, leave=False)
+    bar = tqdm(total=episodes, desc=desc or f"evaluate {cfg.name}", unit="ep", disable=not progress, leave=False)
     for r in range(rounds):
         b = min(n_envs, episodes - r * n_envs)
         env = PursuitEnv(cfg.spec, cfg.rewards, n_envs=b, seed=eval_seed(seed, r), track_metrics=True)
@@ -80,6 +86,34 @@ def evaluate(cfg: ExperimentConfig, policy: Policy, episodes: int, seed: int = 0
     out["wall_s"] = time.perf_counter() - t0
     log.info("evaluated %d episodes of %s in %.1f s", len(records), cfg.name, out["wall_s"])
     return out
+
+
+def mean_of(docs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """The mean of several evaluations' metrics (e.g. over the kinds of the evader suite): every metric of
+    ``METRIC_KEYS`` averaged with equal weight per evaluation; ``episodes`` and ``wall_s`` summed."""
+    out: dict[str, float] = {}
+    for k in METRIC_KEYS:
+        vals = [d[k] for d in docs if k in d]
+        if vals and k != "episodes":
+            out[k] = float(np.mean(vals))
+    out["episodes"] = int(sum(d.get("episodes", 0) for d in docs))
+    out["wall_s"] = float(sum(d.get("wall_s", 0.0) for d in docs))
+    return out
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Writes ``text`` to a temporary file beside ``path`` and renames it over ``path``: a reader (or a crash)
+    sees the old file or the new one, never half of one."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, p)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return p
 
 
 def format_table(results: Mapping[str, Mapping[str, float]], paper: Mapping[str, float] | None = None) -> str:

@@ -1,9 +1,10 @@
 """Evaluation of trained actors (a run folder or an exported models folder) beside the classical baseline.
 
-``evaluate_learned`` runs the learned pursuer team against learned evaders (the co-trained actors) or
-scripted ones (``training.baselines.FleeingEvaders``), and the classical pursuer team against the same
-evaders on the same evaluation seeds (``training.evaluate``: disjoint from every training seed), so that the
-three columns of the printed table (ours, classical, paper) compare like with like.
+``evaluate_learned`` runs the learned pursuer team against one kind of evaders (``training.evader_spec``: the
+co-trained actors, the scripted fleeing evaders, a kind of the held-out suite or a user's class), and the
+classical pursuer team against the same evaders on the same evaluation seeds (``training.evaluate``: disjoint
+from every training seed), so that the columns of the printed table (ours, classical, paper) compare like with
+like. Several runs at once: ``training.aggregate``.
 """
 from __future__ import annotations
 
@@ -11,12 +12,11 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from training.baselines import ClassicalPursuers, FleeingEvaders, Policy, TeamPolicy
+from training.baselines import ClassicalPursuers, Policy, TeamPolicy
 from training.checkpoint import load_actors
 from training.config import ExperimentConfig
-from training.evaluate import EVAL_SEED_OFFSET, evaluate
+from training.evader_spec import SUITE_MEAN, expand, label, make_evaders
+from training.evaluate import EVAL_SEED_OFFSET, evaluate, mean_of
 from training.maddpg import ActorsPolicy, OnnxActorsPolicy
 
 log = logging.getLogger(__name__)
@@ -44,6 +44,9 @@ def load_learned(run: str | Path | None = None, models: str | Path | None = None
         if spec.hash != cfg.spec.hash:
             raise LearnedModelError(f"{run}/actors.pt has spec {spec.hash}, its config.toml {cfg.spec.hash}")
         return cfg, ActorsPolicy([a for _, _, a in agents], spec.max_obs_dim), str(run / "actors.pt")
+    if not (Path(models) / "manifest.json").is_file():
+        raise LearnedModelError(f"{models} is not a models folder (no manifest.json): export a run with "
+                                f"`swarm-export onnx --run RUN --out {models}`")
     pol = OnnxActorsPolicy(str(models))
     conf = pol.manifest.config
     if not conf:
@@ -55,12 +58,48 @@ def load_learned(run: str | Path | None = None, models: str | Path | None = None
     return cfg, pol, str(Path(models) / "manifest.json")
 
 
-def team(learned: Policy, evader: str) -> Policy:
+def load_source(path: str | Path) -> tuple[ExperimentConfig, Policy, str]:
+    """``load_learned`` of a run folder (has ``config.toml``) or a models folder (has ``manifest.json``)."""
+    p = Path(path)
+    if (p / "config.toml").is_file():
+        return load_learned(run=p)
+    if (p / "manifest.json").is_file():
+        return load_learned(models=p)
+    raise LearnedModelError(f"{str(path)!r} is neither a training run (config.toml) nor a models folder "
+                            f"(manifest.json): give runs/NAME or models/NAME")
+
+
+def team(learned: Policy, evader: str, seed: int = 0) -> Policy:
+    """The learned pursuer team against one expanded evader kind (``training.evader_spec.expand``)."""
     if evader == "learned":
         return learned
-    if evader == "scripted":
-        return TeamPolicy(learned, FleeingEvaders())
-    raise LearnedModelError(f"--evader {evader!r}: use one of {list(EVADER_KINDS)}")
+    return TeamPolicy(learned, make_evaders(evader, seed, learned))
+
+
+def evaluate_kind(cfg: ExperimentConfig, learned: Policy, kind: str, episodes: int, seed: int, n_envs: int,
+                  classical: bool, progress: bool) -> dict[str, Any]:
+    """The learned team's metrics against one evader kind, and the classical team's (key ``classical``)
+    against a fresh copy of the same evaders (scripted evaders draw the same parameters from the same seed)."""
+    name = label(kind)
+    out: dict[str, Any] = evaluate(cfg, team(learned, kind, seed), episodes, seed=seed, n_envs=n_envs,
+                                   progress=progress, desc=f"ours vs {name}")
+    if classical:
+        out["classical"] = evaluate(cfg, TeamPolicy(ClassicalPursuers(), make_evaders(kind, seed, learned)),
+                                    episodes, seed=seed, n_envs=n_envs, progress=progress,
+                                    desc=f"classical vs {name}")
+    return out
+
+
+def with_suite_mean(results: dict[str, dict[str, Any]], kinds: list[str]) -> dict[str, dict[str, Any]]:
+    """Adds ``SUITE_MEAN`` (the mean over the suite's kinds, ``classical`` too) when more than one ran."""
+    suite = [label(k) for k in kinds if k.startswith("suite:")]
+    if len(suite) > 1:
+        mean: dict[str, Any] = mean_of([results[k] for k in suite])
+        if all("classical" in results[k] for k in suite):
+            mean["classical"] = mean_of([results[k]["classical"] for k in suite])
+        mean["kinds"] = suite
+        results[SUITE_MEAN] = mean
+    return results
 
 
 def evaluate_learned(run: str | Path | None = None, models: str | Path | None = None, evader: str = "learned",
@@ -68,30 +107,48 @@ def evaluate_learned(run: str | Path | None = None, models: str | Path | None = 
                      progress: bool = True) -> dict[str, Any]:
     """The learned team's metrics under the evaluator's keys (``mean_min_dist`` ...), the same flat layout as
     the baselines' JSON, plus ``config``, ``source``, ``evader``, ``seed`` and ``classical``: the classical
-    pursuer team's metrics against the same evaders on the same seeds."""
+    pursuer team's metrics against the same evaders on the same seeds. ``evader`` is one kind (``learned``,
+    ``scripted``, ``suite:KIND``, ``module:Class``); for several see ``evaluate_learned_kinds``."""
+    kinds = expand(evader)
+    if len(kinds) != 1:
+        raise LearnedModelError(f"--evader {evader!r} stands for {len(kinds)} kinds: evaluate them with "
+                                f"evaluate_learned_kinds")
+    return evaluate_learned_kinds(run, models, kinds, episodes, seed, n_envs, classical, progress)[label(kinds[0])]
+
+
+def evaluate_learned_kinds(run: str | Path | None, models: str | Path | None, kinds: list[str], episodes: int,
+                           seed: int, n_envs: int, classical: bool = True, progress: bool = True
+                           ) -> dict[str, dict[str, Any]]:
+    """``evaluate_learned``'s document for each expanded kind, by ``label(kind)``, plus ``SUITE_MEAN``."""
     cfg, learned, source = load_learned(run, models)
-    ours = evaluate(cfg, team(learned, evader), episodes, seed=seed, n_envs=n_envs, progress=progress)
-    out: dict[str, Any] = {**ours, "config": cfg.name, "spec_hash": cfg.spec.hash, "source": source,
-                           "policy": "maddpg", "evader": evader, "seed": seed, "n_envs": n_envs,
-                           "eval_seed_offset": EVAL_SEED_OFFSET}
-    if classical:
-        evaders = learned if evader == "learned" else FleeingEvaders()
-        out["classical"] = evaluate(cfg, TeamPolicy(ClassicalPursuers(), evaders), episodes, seed=seed,
-                                    n_envs=n_envs, progress=progress)
-    return out
+    results: dict[str, dict[str, Any]] = {}
+    for kind in kinds:
+        res = evaluate_kind(cfg, learned, kind, episodes, seed, n_envs, classical, progress)
+        results[label(kind)] = {**res, "config": cfg.name, "spec_hash": cfg.spec.hash, "source": source,
+                                "policy": "maddpg", "evader": kind, "seed": seed, "n_envs": n_envs,
+                                "eval_seed_offset": EVAL_SEED_OFFSET}
+    return with_suite_mean(results, kinds)
 
 
 # ------------------------------------------------------------------------------------------------ CLI
 # `swarm-train evaluate --run RUN | --models DIR` (training.cli routes here)
 
+EVADER_HELP = (
+    "evaders to meet: 'learned' (the co-trained evader actors; needs --run/--models; default there), "
+    "'scripted' (training.baselines.FleeingEvaders), 'both' (learned and scripted), 'suite' (every kind of the "
+    "held-out suite, each reported alone, and their mean), 'suite:KIND[,KIND]' (KIND: wanderer, perimeter, "
+    "hider, juker, predictive), 'module:Class' or 'path/to/file.py:Class' (your own evaders: act(obs, env) "
+    "-> [B, N, 2], built with Class(seed=S) or Class()). Without --run/--models it replaces --evaders.")
+
 
 def add_learned_arguments(p: Any) -> None:
-    p.add_argument("--run", metavar="RUN", help="evaluate the trained actors of a run folder (runs/NAME)")
-    p.add_argument("--models", metavar="DIR", help="evaluate an exported ONNX models folder (models/NAME)")
-    p.add_argument("--evader", choices=(*EVADER_KINDS, "both"), default="learned",
-                   help="with --run/--models: the co-trained evader actors ('learned', default), the scripted "
-                        "fleeing evaders ('scripted') or both (the JSON then holds one object per kind)")
-    p.add_argument("--md", metavar="PATH", help="with --run/--models: also write the table as Markdown")
+    p.add_argument("--run", metavar="RUN", action="append",
+                   help="evaluate the trained actors of a run folder (runs/NAME); give it several times or as a "
+                        "quoted glob ('runs/role_based_s*') to report the mean and min-max over runs")
+    p.add_argument("--models", metavar="DIR", action="append",
+                   help="evaluate an exported ONNX models folder (models/NAME); several as with --run")
+    p.add_argument("--evader", metavar="SPEC", default=None, help=EVADER_HELP)
+    p.add_argument("--md", metavar="PATH", help="also write the table as Markdown (ready to paste)")
     p.add_argument("--no-classical", action="store_true",
                    help="with --run/--models: skip the classical pursuer team's column")
 
@@ -99,7 +156,8 @@ def add_learned_arguments(p: Any) -> None:
 def markdown_table(results: dict[str, dict[str, Any]], paper: dict[str, float] | None) -> str:
     """One Markdown table: a column per result (``ours vs learned`` ...) and the paper's figures."""
     keys = ["mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage",
-            "collisions_per_episode", "episodes"]
+            "teammate_contacts_per_episode", "team_obstacle_contacts_per_episode", "evader_contacts_per_episode",
+            "collisions_per_episode", "captures_per_episode", "episodes"]
     cols = list(results)
     lines = ["| metric | " + " | ".join(cols) + (" | paper |" if paper else " |"),
              "|---" * (len(cols) + 1 + bool(paper)) + "|"]
@@ -119,45 +177,50 @@ def _cell(v: Any) -> str:
     return f"{v:.4f}"
 
 
+def columns(results: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``ours vs K`` and ``classical vs K`` columns of every kind's result."""
+    cols = {}
+    for kind, res in results.items():
+        name = "suite mean" if kind == SUITE_MEAN else kind
+        cols[f"ours vs {name}"] = res
+        if "classical" in res:
+            cols[f"classical vs {name}"] = res["classical"]
+    return cols
+
+
 def cmd_evaluate_learned(args: Any) -> int:
     import json
 
     from training.cli import UsageError
-    from training.evaluate import PAPER, format_table
-    from training.checkpoint import CheckpointError
-    kinds = list(EVADER_KINDS) if args.evader == "both" else [args.evader]
-    results: dict[str, dict[str, Any]] = {}
-    for kind in kinds:
-        try:
-            results[kind] = evaluate_learned(args.run, args.models, kind, args.episodes, args.seed, args.n_envs,
-                                             classical=not args.no_classical, progress=not args.no_progress)
-        except (LearnedModelError, CheckpointError, OSError) as exc:
-            raise UsageError(str(exc)) from None
-        except ValueError as exc:  # runtime.policy.PolicyError and spec errors
-            raise UsageError(str(exc)) from None
-    cols = {}
-    for kind, res in results.items():
-        cols[f"ours vs {kind}"] = res
-        if "classical" in res:
-            cols[f"classical vs {kind}"] = res["classical"]
+    from training.aggregate import cmd_evaluate_runs, expand_sources
+    from training.evaluate import PAPER, format_table, write_text_atomic
+    runs, models = expand_sources(args.run or []), expand_sources(args.models or [])
+    if len(runs) + len(models) > 1:
+        return cmd_evaluate_runs(args)
+    kinds = expand(args.evader or "learned")
+    results = evaluate_learned_kinds(runs[0] if runs else None, models[0] if models else None, kinds,
+                                     args.episodes, args.seed, args.n_envs, classical=not args.no_classical,
+                                     progress=not args.no_progress)
+    cols = columns(results)
     first = next(iter(results.values()))
     paper = PAPER.get(first["config"])
-    print(f"{first['config']}: {first['source']} vs {' and '.join(kinds)} evaders, {first['episodes']} episodes "
-          f"each, held-out seed {args.seed}, {sum(r['wall_s'] for r in results.values()):.1f} s")
+    names = [label(k) for k in kinds]
+    wall = sum(r["wall_s"] + r.get("classical", {}).get("wall_s", 0.0) for k, r in results.items() if k != SUITE_MEAN)
+    print(f"{first['config']}: {first['source']} vs {', '.join(names)} evaders, {first['episodes']} episodes "
+          f"each, held-out seed {args.seed}, {wall:.1f} s")
     print(format_table(cols, paper))
-    if args.json:
-        p = Path(args.json)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        doc = results[kinds[0]] if len(kinds) == 1 else results
-        p.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
-        print(f"wrote {args.json}")
-    if getattr(args, "md", None):
-        p = Path(args.md)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        head = (f"{first['config']}: `{first['source']}`, {first['episodes']} held-out episodes per column "
-                f"(evaluation seed {args.seed}, seed offset {first['eval_seed_offset']})\n\n")
-        p.write_text(head + markdown_table(cols, paper))
-        print(f"wrote {args.md}")
+    try:
+        if args.json:
+            doc = results[names[0]] if len(kinds) == 1 else results
+            write_text_atomic(args.json, json.dumps(doc, indent=2, sort_keys=True) + "\n")
+            print(f"wrote {args.json}")
+        if getattr(args, "md", None):
+            head = (f"{first['config']}: `{first['source']}`, {first['episodes']} held-out episodes per column "
+                    f"(evaluation seed {args.seed}, seed offset {first['eval_seed_offset']})\n\n")
+            write_text_atomic(args.md, head + markdown_table(cols, paper))
+            print(f"wrote {args.md}")
+    except OSError as exc:
+        raise UsageError(f"cannot write the output: {exc}") from None
     return 0
 
 
