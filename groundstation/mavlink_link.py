@@ -45,6 +45,7 @@ ground station's geofence, which keeps setpoints a margin inside.
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import logging
 import math
 import threading
@@ -53,6 +54,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterable
 
 from groundstation.link import FlightState, Link, LinkError, LinkStats, Telemetry
+from groundstation.mavlink_autopilot import (COPTER_MODES, LANDING_MODES, PX4_MODES, Autopilot, GlobalOrigin,
+                                             failsafe_params, fence_items, fence_params, mode_name, set_mode_params)
+from groundstation.mavlink_worker import CommandWorker
 
 if TYPE_CHECKING:
     from groundstation.safety import FenceConfig
@@ -72,8 +76,6 @@ TYPE_MASK_IGNORE_YAW_RATE = 1 << 11
 
 FORCE_DISARM_MAGIC = 21196.0
 """param2 of ``MAV_CMD_COMPONENT_ARM_DISARM`` that forces a disarm in the air."""
-LOCAL_XY_SCALE = 1e4
-"""``MISSION_ITEM_INT`` x, y in local frames: metres x 1e4."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -162,23 +164,6 @@ def parse_uri(uri: str) -> str:
     return rest
 
 
-def fence_items(fence: "FenceConfig") -> list[dict[str, float | int]]:
-    """The fence as ``MISSION_ITEM_INT`` fields (see the module docstring), in upload order."""
-    mav = mavlink_module()
-    items: list[dict[str, float | int]] = []
-    poly = fence.polygon
-    for x, y in poly:
-        n, e, _ = enu_to_ned(float(x), float(y), 0.0)
-        items.append({"command": mav.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION, "param1": float(len(poly)),
-                      "param2": 0.0, "x": round(n * LOCAL_XY_SCALE), "y": round(e * LOCAL_XY_SCALE),
-                      "z": -float(fence.z_max)})
-    for k in fence.keep_out:
-        n, e, _ = enu_to_ned(k.x, k.y, 0.0)
-        items.append({"command": mav.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION, "param1": float(k.radius),
-                      "param2": 0.0, "x": round(n * LOCAL_XY_SCALE), "y": round(e * LOCAL_XY_SCALE), "z": 0.0})
-    return items
-
-
 # --------------------------------------------------------------------------------------------------
 # the link
 
@@ -190,18 +175,21 @@ class _Pending:
 
 
 class MavlinkLink(Link):
-    """One MAVLink vehicle. Opening blocks until its heartbeat and a full telemetry sample arrived.
+    """One ArduPilot or PX4 vehicle. Opening blocks until its heartbeat, a full telemetry sample, its EKF origin
+    and its confirmation of the GCS-loss failsafe parameters arrived.
 
     >>> with MavlinkLink("mavlink:udpin:127.0.0.1:14550") as link:
-    ...     link.takeoff(1.0, 2.0)
+    ...     link.takeoff(1.0, 2.0).result(timeout=10)
     """
 
     def __init__(self, uri: str, *, connect_timeout: float = 10.0, heartbeat_period: float = 0.25,
                  telemetry_rate: float = 50.0, period_ms: int | None = None, link_loss_timeout: float = 0.25,
-                 ack_timeout: float = 1.0, retries: int = 3, source_system: int = 255,
-                 source_component: int = 190) -> None:
+                 ack_timeout: float = 0.5, retries: int = 3, source_system: int = 255, source_component: int = 190,
+                 gcs_failsafe_timeout: float = 1.0, offboard_prestream: float = 0.3) -> None:
         """``period_ms``, when given, sets the telemetry period like ``CflibLink(period_ms=...)`` and overrides
-        ``telemetry_rate`` [Hz]."""
+        ``telemetry_rate`` [Hz]. ``gcs_failsafe_timeout`` [s]: the vehicle lands by itself after this much
+        silence of this ground station. ``offboard_prestream`` [s]: how long PX4 gets setpoints before the
+        switch to OFFBOARD is asked for."""
         super().__init__(uri)
         self.connection = parse_uri(uri)
         if period_ms is not None:
@@ -209,16 +197,22 @@ class MavlinkLink(Link):
                 raise LinkError(uri, f"period_ms must be in 1..10000, got {period_ms}",
                                 "pass the telemetry period in milliseconds, e.g. period_ms=20")
             telemetry_rate = 1000.0 / period_ms
-        if not telemetry_rate > 0:
-            raise LinkError(uri, f"telemetry_rate must be positive, got {telemetry_rate}",
-                            "pass the telemetry rate in Hz, e.g. telemetry_rate=50")
+        for name, value in (("telemetry_rate", telemetry_rate), ("ack_timeout", ack_timeout),
+                            ("gcs_failsafe_timeout", gcs_failsafe_timeout)):
+            if not (math.isfinite(value) and value > 0):
+                raise LinkError(uri, f"{name} must be a positive number, got {value}",
+                                f"pass {name} as a positive number (seconds, or Hz for telemetry_rate)")
         self.heartbeat_period = heartbeat_period
         self.telemetry_rate = telemetry_rate
         self.link_loss_timeout = link_loss_timeout
         self.ack_timeout = ack_timeout
         self.retries = retries
+        self.gcs_failsafe_timeout = gcs_failsafe_timeout
+        self.offboard_prestream = offboard_prestream
         self.target_system: int | None = None
         self.target_component: int = 1
+        self.autopilot: Autopilot | None = None
+        self.origin: GlobalOrigin | None = None
         self._mav = mavlink_module()
         try:
             self._conn = open_mavlink(self.connection, source_system, source_component)
@@ -234,27 +228,50 @@ class MavlinkLink(Link):
         self._closed = False
         self._stop = threading.Event()
         self._acks: dict[int, _Pending] = {}
+        self._params: dict[str, _Pending] = {}
         self._upload: dict[str, Any] | None = None
         self._armed = False
         self._terminated = False
+        self._estopped = False  # latched by emergency_stop() until a reboot: ArduPilot's termination only disarms
+        self._custom_mode = 0
         self._landed_state = self._mav.MAV_LANDED_STATE_UNDEFINED
         self._battery_v = math.nan
         self._last_heartbeat = -math.inf
         self._got_heartbeat = threading.Event()
+        self._got_origin = threading.Event()
+        self._want_offboard = False
+        self._stream_since = -math.inf
+        self._last_setpoint = -math.inf
+        self._offboard_asked = -math.inf
         self._arrivals: collections.deque[float] = collections.deque(maxlen=max(2, int(2 * telemetry_rate)))
         self._t0 = time.monotonic()
         self._thread = threading.Thread(target=self._run, name=f"mavlink-link {self.connection}", daemon=True)
         self._thread.start()
+        self._worker = CommandWorker(f"mavlink-commands {self.connection}")
         try:
-            if not self._got_heartbeat.wait(connect_timeout):
-                raise LinkError(uri, f"no vehicle heartbeat within {connect_timeout:.1f} s",
-                                "start the vehicle or simulator and check that it sends to this address "
-                                "(udpin listens, udpout sends first)")
-            self._request_streams()
-            self.wait_telemetry(connect_timeout, lambda s: not math.isnan(s.battery))
+            self._connect(connect_timeout)
         except LinkError:
             self.close()
             raise
+
+    def _connect(self, timeout: float) -> None:
+        uri = self.uri
+        if not self._got_heartbeat.wait(timeout):
+            raise LinkError(uri, f"no vehicle heartbeat within {timeout:.1f} s",
+                            "start the vehicle or simulator and check that it sends to this address "
+                            "(udpin listens, udpout sends first)")
+        if self.autopilot is None:
+            raise LinkError(uri, f"the vehicle's autopilot (MAV_AUTOPILOT {self._heartbeat_autopilot}) is neither "
+                                 "ArduPilot nor PX4", "fly it with ArduPilot or PX4 firmware")
+        self._request_streams()
+        self.wait_telemetry(timeout, lambda s: not math.isnan(s.battery))
+        mav = self._mav
+        self.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+        if not self._got_origin.wait(min(timeout, 2.0)):
+            logger.warning("%s: the vehicle sent no GPS_GLOBAL_ORIGIN: fences and PX4 takeoffs need it (set the EKF "
+                           "origin with SET_GPS_GLOBAL_ORIGIN)", uri)
+        for name, value in failsafe_params(self.autopilot, self.gcs_failsafe_timeout):
+            self.set_param(name, value)
 
     # ---- receive thread ----------------------------------------------------------------------------
 
@@ -293,18 +310,7 @@ class MavlinkLink(Link):
             return
         src = msg.get_srcSystem()
         if kind == "HEARTBEAT":
-            if msg.type in (mav.MAV_TYPE_GCS, mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_TYPE_GIMBAL):
-                return
-            if self.target_system is None:
-                self.target_system, self.target_component = src, msg.get_srcComponent()
-                logger.info("%s: vehicle %d/%d (autopilot %d, type %d)", self.uri, src, self.target_component,
-                            msg.autopilot, msg.type)
-            if src != self.target_system:
-                return
-            self._armed = bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
-            self._terminated = msg.system_status in (mav.MAV_STATE_FLIGHT_TERMINATION, mav.MAV_STATE_EMERGENCY)
-            self._last_heartbeat = time.monotonic()
-            self._got_heartbeat.set()
+            self._on_heartbeat(msg, src)
             return
         if src != self.target_system:
             return
@@ -320,6 +326,15 @@ class MavlinkLink(Link):
             if pending is not None:
                 pending.result = msg.result
                 pending.event.set()
+        elif kind == "PARAM_VALUE":
+            name = msg.param_id.decode() if isinstance(msg.param_id, bytes) else str(msg.param_id)
+            pending = self._params.get(name.rstrip("\x00"))
+            if pending is not None:
+                pending.result = float(msg.param_value)
+                pending.event.set()
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            self.origin = GlobalOrigin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+            self._got_origin.set()
         elif kind in ("MISSION_REQUEST_INT", "MISSION_REQUEST"):
             self._on_mission_request(msg)
         elif kind == "MISSION_ACK":
@@ -327,6 +342,26 @@ class MavlinkLink(Link):
             if up is not None and msg.mission_type == up["mission_type"]:
                 up["result"] = msg.type
                 up["done"].set()
+
+    def _on_heartbeat(self, msg: Any, src: int) -> None:
+        mav = self._mav
+        if msg.type in (mav.MAV_TYPE_GCS, mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_TYPE_GIMBAL):
+            return
+        if self.target_system is None:
+            self.target_system, self.target_component = src, msg.get_srcComponent()
+            self._heartbeat_autopilot = msg.autopilot
+            self.autopilot = Autopilot.from_heartbeat(msg.autopilot)
+            logger.info("%s: vehicle %d/%d (autopilot %d, type %d)", self.uri, src, self.target_component,
+                        msg.autopilot, msg.type)
+        if src != self.target_system:
+            return
+        self._armed = bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+        self._terminated = msg.system_status in (mav.MAV_STATE_FLIGHT_TERMINATION, mav.MAV_STATE_EMERGENCY)
+        self._custom_mode = msg.custom_mode
+        if self.mode in LANDING_MODES:
+            self._want_offboard = False  # the vehicle brings itself down: never switch it back
+        self._last_heartbeat = time.monotonic()
+        self._got_heartbeat.set()
 
     def _on_position(self, msg: Any) -> None:
         now = time.monotonic()
@@ -350,10 +385,17 @@ class MavlinkLink(Link):
         return min(1.0, recent / (window * self.telemetry_rate + 1.0))
 
     @property
+    def mode(self) -> str:
+        """The vehicle's flight mode by pymavlink's name (``GUIDED``, ``OFFBOARD``, ``LAND``...)."""
+        if self.autopilot is None:
+            return "UNKNOWN"
+        return mode_name(self.autopilot, self._custom_mode)
+
+    @property
     def flight_state(self) -> FlightState:
         """From the heartbeat's armed flag and system status and ``EXTENDED_SYS_STATE.landed_state``."""
         mav = self._mav
-        if self._terminated:
+        if self._terminated or (self._estopped and not self._armed):
             return FlightState.LOCKED
         if not self._armed:
             return FlightState.DISARMED
@@ -372,6 +414,11 @@ class MavlinkLink(Link):
     def link_lost(self) -> bool:
         return super().link_lost or time.monotonic() - self._last_heartbeat > max(3.0, 4 * self.link_loss_timeout)
 
+    @property
+    def command_errors(self) -> list[str]:
+        """Every background command job that failed (``takeoff``, ``land``, the OFFBOARD switch), oldest first."""
+        return list(self._worker.errors)
+
     # ---- sending -----------------------------------------------------------------------------------
 
     def _send(self, method: str, *args: Any) -> None:
@@ -389,34 +436,81 @@ class MavlinkLink(Link):
     def _time_boot_ms(self) -> int:
         return int((time.monotonic() - self._t0) * 1000) & 0xFFFFFFFF
 
+    def _wait(self, event: threading.Event, timeout: float, interruptible: bool) -> bool:
+        """Wait for ``event``; in a worker job that was preempted, give up at once (``LinkError``)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            if event.wait(min(0.02, max(deadline - time.monotonic(), 0.0))):
+                return True
+            if interruptible and self._worker.should_stop():
+                raise LinkError(self.uri, "command abandoned for a landing", "nothing to do: the landing goes on")
+            if time.monotonic() >= deadline:
+                return False
+
     def command(self, command: int, *params: float, timeout: float | None = None) -> int:
         """Send ``COMMAND_LONG`` (up to 7 params) and wait for its ``COMMAND_ACK``; returns the ``MAV_RESULT``.
-        Retried ``retries`` times (with the confirmation counter) when unanswered; ``LinkError`` then."""
+        Retried ``retries`` times (with the confirmation counter) when unanswered; ``LinkError`` then. Blocks:
+        the flight supervisor's ``takeoff`` / ``land`` go through the link's worker instead."""
         self._check_open()
         p = [float(v) for v in params] + [0.0] * (7 - len(params))
         pending = _Pending(threading.Event())
         self._acks[command] = pending
+        interruptible = threading.current_thread() is self._worker._thread
         try:
             for attempt in range(self.retries + 1):
                 self._send("command_long_send", self.target_system, self.target_component, command, attempt, *p)
-                if pending.event.wait(timeout or self.ack_timeout):
+                if self._wait(pending.event, timeout or self.ack_timeout, interruptible):
+                    if command == self._mav.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN and \
+                            pending.result == self._mav.MAV_RESULT_ACCEPTED:
+                        self._estopped = False
                     return int(pending.result)
         finally:
             self._acks.pop(command, None)
-        raise LinkError(self.uri, f"command {command} unanswered after {self.retries + 1} tries",
+        raise LinkError(self.uri, f"command {_name(self._mav, 'MAV_CMD_', command)} unanswered after "
+                                  f"{self.retries + 1} tries of {timeout or self.ack_timeout:.2f} s",
                         "check the link; the vehicle may not support this command")
 
     def _command_ok(self, command: int, what: str, *params: float) -> None:
         result = self.command(command, *params)
         if result != self._mav.MAV_RESULT_ACCEPTED:
-            names = {v: k for k, v in vars(self._mav).items() if k.startswith("MAV_RESULT_")}
-            raise LinkError(self.uri, f"{what} refused: {names.get(result, result)}",
+            raise LinkError(self.uri, f"{what} refused: {_name(self._mav, 'MAV_RESULT_', result)} (mode {self.mode})",
                             "check the vehicle's state (armed, on the ground, not locked by a failsafe)")
+
+    def set_param(self, name: str, value: float, timeout: float | None = None) -> float:
+        """``PARAM_SET`` and wait for the vehicle's ``PARAM_VALUE`` echo; ``LinkError`` when it never comes
+        (both firmwares stay silent about a parameter they do not have)."""
+        self._check_open()
+        pending = _Pending(threading.Event())
+        self._params[name] = pending
+        try:
+            for _ in range(self.retries + 1):
+                self._send("param_set_send", self.target_system, self.target_component, name.encode(), float(value),
+                           self._mav.MAV_PARAM_TYPE_REAL32)
+                if self._wait(pending.event, timeout or self.ack_timeout, False):
+                    if not math.isclose(pending.result, value, rel_tol=1e-6, abs_tol=1e-6):
+                        raise LinkError(self.uri, f"parameter {name} is {pending.result:g} after setting {value:g}",
+                                        "check the parameter's range on this firmware")
+                    return pending.result
+        finally:
+            self._params.pop(name, None)
+        raise LinkError(self.uri, f"parameter {name} not confirmed by the vehicle",
+                        f"check that this {self.autopilot.value if self.autopilot else ''} firmware has {name}")
+
+    def set_mode(self, name: str) -> None:
+        """Switch the flight mode (``MAV_CMD_DO_SET_MODE``); blocks for the ack, ``LinkError`` if refused."""
+        try:
+            params = set_mode_params(self.autopilot, name)
+        except KeyError:
+            raise LinkError(self.uri, f"unknown {self.autopilot.value} mode {name!r}",
+                            "use one of " + ", ".join(PX4_MODES if self.autopilot is Autopilot.PX4 else COPTER_MODES))
+        self._command_ok(self._mav.MAV_CMD_DO_SET_MODE, f"mode {name}", *params)
 
     def _request_streams(self) -> None:
         mav = self._mav
         period_us = 1e6 / self.telemetry_rate
-        for msg_id, interval in ((mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, period_us),
+        # heartbeats at 5 Hz: the armed flag and the mode travel in them (both firmwares default to 1 Hz)
+        for msg_id, interval in ((mav.MAVLINK_MSG_ID_HEARTBEAT, 2e5),
+                                 (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, period_us),
                                  (mav.MAVLINK_MSG_ID_SYS_STATUS, 2e5),
                                  (mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2e5)):
             result = self.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval)
@@ -424,12 +518,15 @@ class MavlinkLink(Link):
                 logger.warning("%s: vehicle refused the stream rate of message %d (result %d); using its default",
                                self.uri, msg_id, result)
 
+    # ---- setpoints ---------------------------------------------------------------------------------
+
     def send_velocity(self, vx: float, vy: float, vz: float, yaw_rate: float = 0.0) -> None:
         self._check_open()
         n, e, d = enu_to_ned(vx, vy, vz)
         self._send("set_position_target_local_ned_send", self._time_boot_ms(), self.target_system,
                    self.target_component, self._mav.MAV_FRAME_LOCAL_NED, VELOCITY_MASK, 0.0, 0.0, 0.0, n, e, d,
                    0.0, 0.0, 0.0, 0.0, -float(yaw_rate))
+        self._streaming()
 
     def send_position(self, x: float, y: float, z: float, yaw: float = 0.0) -> None:
         self._check_open()
@@ -437,8 +534,75 @@ class MavlinkLink(Link):
         self._send("set_position_target_local_ned_send", self._time_boot_ms(), self.target_system,
                    self.target_component, self._mav.MAV_FRAME_LOCAL_NED, POSITION_MASK, n, e, d, 0.0, 0.0, 0.0,
                    0.0, 0.0, 0.0, yaw_enu_to_ned(yaw), 0.0)
+        self._streaming()
+
+    def _streaming(self) -> None:
+        """PX4 flies setpoints only in OFFBOARD, which it accepts only while they arrive: after a takeoff, once
+        the stream has run ``offboard_prestream``, ask for OFFBOARD (on the worker, never waiting here)."""
+        now = time.monotonic()
+        if now - self._last_setpoint > 0.5:
+            self._stream_since = now
+        self._last_setpoint = now
+        if not (self._want_offboard and self._armed and self.mode not in ("OFFBOARD", "TAKEOFF", *LANDING_MODES)):
+            return
+        if now - self._stream_since >= self.offboard_prestream and now - self._offboard_asked > 0.5:
+            self._offboard_asked = now
+            self._worker.submit("offboard", lambda: self.set_mode("OFFBOARD"))
+
+    # ---- takeoff, landing, stop (queued on the worker) ---------------------------------------------
+
+    def _check_flyable(self) -> None:
+        self._check_open()
+        if self._terminated or self._estopped:
+            raise LinkError(self.uri, "the vehicle is locked by a flight termination (emergency stop)",
+                            "reboot it: link.command(MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)")
+
+    def takeoff(self, height: float, duration: float) -> concurrent.futures.Future:
+        """Queue the takeoff to ``height`` [m, world z] and return its future at once: ArduPilot GUIDED, arm,
+        climb speed, ``NAV_TAKEOFF`` (param7 above home); PX4 arm, ``NAV_TAKEOFF`` (param7 AMSL from the EKF
+        origin), then OFFBOARD once setpoints stream. ``LinkError`` now only for a closed or locked link; a
+        refused step fails the future (and is logged, and kept in ``command_errors``)."""
+        self._check_flyable()
+        self._worker.preempt(("land",))
+        return self._worker.submit("takeoff", lambda: self._takeoff(height, duration))
+
+    def _takeoff(self, height: float, duration: float) -> None:
+        mav = self._mav
+        if self.autopilot is Autopilot.PX4:
+            if self.origin is None:
+                raise LinkError(self.uri, "PX4 takeoff needs the EKF origin (GPS_GLOBAL_ORIGIN)",
+                                "set the vehicle's EKF origin before flying")
+            if not self._armed:
+                self._command_ok(mav.MAV_CMD_COMPONENT_ARM_DISARM, "arming", 1.0)
+            self._want_offboard = True
+            self._command_ok(mav.MAV_CMD_NAV_TAKEOFF, "takeoff", 0, 0, 0, math.nan, math.nan, math.nan,
+                             self.origin.alt + height)
+            return
+        if self.mode != "GUIDED":
+            self.set_mode("GUIDED")
+        if not self._armed:
+            self._command_ok(mav.MAV_CMD_COMPONENT_ARM_DISARM, "arming", 1.0)
+        latest = self.telemetry()
+        z0 = latest.position[2] if latest is not None else 0.0
+        if duration > 0 and height > z0:
+            result = self.command(mav.MAV_CMD_DO_CHANGE_SPEED, 2.0, (height - z0) / duration, -1.0)
+            if result != mav.MAV_RESULT_ACCEPTED:
+                logger.info("%s: climb speed not taken (%s); the firmware's takeoff speed applies", self.uri,
+                            _name(mav, "MAV_RESULT_", result))
+        self._command_ok(mav.MAV_CMD_NAV_TAKEOFF, "takeoff", 0, 0, 0, math.nan, math.nan, math.nan, height)
+
+    def land(self, duration: float, height: float = 0.0) -> concurrent.futures.Future:
+        """Queue ``MAV_CMD_NAV_LAND`` (both firmwares switch to their LAND mode, descend at their landing speed
+        and disarm on the ground; ``duration`` and ``height`` are theirs to choose) and return its future.
+        A queued or hanging takeoff is abandoned first. Repeated calls while one is in flight share it."""
+        self._check_open()
+        self._want_offboard = False
+        self._worker.preempt(("takeoff", "offboard"))
+        return self._worker.submit("land", lambda: self._command_ok(
+            self._mav.MAV_CMD_NAV_LAND, "landing", 0, 0, 0, math.nan, math.nan, math.nan, 0.0))
 
     def arm(self) -> None:
+        self._check_flyable()
         self._command_ok(self._mav.MAV_CMD_COMPONENT_ARM_DISARM, "arming", 1.0)
 
     def disarm(self, force: bool = False) -> None:
@@ -446,30 +610,12 @@ class MavlinkLink(Link):
         self._command_ok(self._mav.MAV_CMD_COMPONENT_ARM_DISARM, "disarming", 0.0,
                          FORCE_DISARM_MAGIC if force else 0.0)
 
-    def takeoff(self, height: float, duration: float) -> None:
-        mav = self._mav
-        self._check_open()
-        if not self._armed:
-            self.arm()
-        latest = self.telemetry()
-        z0 = latest.position[2] if latest is not None else 0.0
-        if duration > 0 and height > z0:
-            self._command_ok(mav.MAV_CMD_DO_CHANGE_SPEED, "climb speed", 2.0, (height - z0) / duration, -1.0)
-        self._command_ok(mav.MAV_CMD_NAV_TAKEOFF, "takeoff", 0, 0, 0, math.nan, math.nan, math.nan, height)
-
-    def land(self, duration: float, height: float = 0.0) -> None:
-        mav = self._mav
-        self._check_open()
-        latest = self.telemetry()
-        if latest is not None and duration > 0 and latest.position[2] > height:
-            self._command_ok(mav.MAV_CMD_DO_CHANGE_SPEED, "descent speed", 3.0,
-                             (latest.position[2] - height) / duration, -1.0)
-        self._command_ok(mav.MAV_CMD_NAV_LAND, "landing", 0, 0, 0, math.nan, math.nan, math.nan, height)
-
     def emergency_stop(self) -> None:
         """``MAV_CMD_DO_FLIGHTTERMINATION``, sent three times without waiting (a lost packet must not delay
-        it). The vehicle cuts its motors and stays locked until rebooted."""
+        it). PX4 locks until rebooted; ArduCopter disarms, and this link keeps it locked until a reboot."""
         self._check_open()
+        self._estopped = True
+        self._want_offboard = False
         for attempt in range(3):
             self._send("command_long_send", self.target_system, self.target_component,
                        self._mav.MAV_CMD_DO_FLIGHTTERMINATION, attempt, 1.0, 0, 0, 0, 0, 0, 0)
@@ -477,13 +623,23 @@ class MavlinkLink(Link):
     # ---- fence -------------------------------------------------------------------------------------
 
     def upload_fence(self, fence: "FenceConfig", timeout: float = 5.0) -> int:
-        """Upload ``fence`` with the mission protocol (see the module docstring); returns the item count.
-        ``LinkError`` when the vehicle refuses it or the transfer does not finish within ``timeout`` [s]."""
-        return self._upload_items(fence_items(fence), self._mav.MAV_MISSION_TYPE_FENCE, timeout)
+        """Give the vehicle ``fence`` the way its firmware takes it (``groundstation.mavlink_autopilot``):
+        polygon and keep-out circles as fence mission items in the global frame, then the parameters for the
+        ceiling and a landing on breach. Returns the item count; ``LinkError`` when refused or unfinished.
+        Blocks: call it before the flight."""
+        if self.origin is None:
+            raise LinkError(self.uri, "no EKF origin (GPS_GLOBAL_ORIGIN) to place the fence",
+                            "set the vehicle's EKF origin, then upload the fence")
+        n = self._upload_items(fence_items(fence, self.origin), self._mav.MAV_MISSION_TYPE_FENCE, timeout)
+        for name, value in fence_params(self.autopilot, fence):
+            self.set_param(name, value)
+        return n
 
     def clear_fence(self, timeout: float = 2.0) -> None:
         """Remove the vehicle's fence (``MISSION_CLEAR_ALL`` with the fence mission type)."""
         self._upload_items([], self._mav.MAV_MISSION_TYPE_FENCE, timeout, clear=True)
+        if self.autopilot is Autopilot.ARDUPILOT:
+            self.set_param("FENCE_ENABLE", 0.0)
 
     def _upload_items(self, items: Iterable[dict], mission_type: int, timeout: float, clear: bool = False) -> int:
         self._check_open()
@@ -512,8 +668,7 @@ class MavlinkLink(Link):
             raise LinkError(self.uri, f"fence upload did not finish within {timeout:.1f} s",
                             "check the link; the vehicle may not support the fence mission type")
         if up["result"] != mav.MAV_MISSION_ACCEPTED:
-            names = {v: k for k, v in vars(mav).items() if k.startswith("MAV_MISSION_") and isinstance(v, int)}
-            raise LinkError(self.uri, f"fence refused: {names.get(up['result'], up['result'])}",
+            raise LinkError(self.uri, f"fence refused: {_name(mav, 'MAV_MISSION_', up['result'])}",
                             "check the fence (convex polygon, a few dozen items at most)")
         logger.info("%s: fence %s (%d items)", self.uri, "cleared" if clear else "uploaded", len(items))
         return len(items)
@@ -529,7 +684,7 @@ class MavlinkLink(Link):
             return
         it = up["items"][seq]
         self._send("mission_item_int_send", self.target_system, self.target_component, seq,
-                   self._mav.MAV_FRAME_LOCAL_NED, it["command"], 0, 1, it["param1"], it["param2"], 0.0, 0.0,
+                   self._mav.MAV_FRAME_GLOBAL_INT, it["command"], 0, 1, it["param1"], 0.0, 0.0, 0.0,
                    int(it["x"]), int(it["y"]), float(it["z"]), up["mission_type"])
 
     # ---- bookkeeping -------------------------------------------------------------------------------
@@ -546,8 +701,17 @@ class MavlinkLink(Link):
         if latest is not None and latest.flight_state is FlightState.FLYING and not self.link_lost:
             logger.warning("%s: closing while flying; the vehicle will land by itself once it misses the ground "
                            "station's heartbeats. Land first.", self.uri)
+        self._worker.close()
         self._stop.set()
         if self._thread.is_alive() and threading.current_thread() is not self._thread:
             self._thread.join(timeout=2.0)
         with self._send_lock:
             self._conn.close()
+
+
+def _name(mav: Any, prefix: str, value: Any) -> str:
+    """``MAV_RESULT_DENIED`` for (``MAV_RESULT_``, 2); the number itself when it has no name."""
+    for k, v in vars(mav).items():
+        if k.startswith(prefix) and v == value and not k.endswith("_ENUM_END"):
+            return k
+    return str(value)

@@ -1,73 +1,93 @@
-"""A simulated MAVLink 2 multicopter: a real protocol peer for ``MavlinkLink`` (pymavlink on both sides).
+"""A simulated MAVLink 2 multicopter that behaves as ArduCopter (default) or PX4: a real protocol peer for
+``MavlinkLink`` and for ordinary pymavlink scripts.
 
-What it speaks (common dialect, one system, one component):
+Both personalities (``VehicleConfig.autopilot``) send ``HEARTBEAT`` (``MAV_TYPE_QUADROTOR``, their autopilot id,
+base mode flags, the custom mode of ``groundstation.mavlink_autopilot``), ``LOCAL_POSITION_NED`` (50 Hz),
+``SYS_STATUS``, ``EXTENDED_SYS_STATE`` (landed state), ``GPS_GLOBAL_ORIGIN`` / ``HOME_POSITION`` on
+``MAV_CMD_REQUEST_MESSAGE``; answer ``PARAM_SET`` / ``PARAM_REQUEST_READ`` with ``PARAM_VALUE`` (their own
+parameter names, firmware defaults); take fences with the mission protocol (``groundstation.sim.mavlink_fence``);
+answer every ``COMMAND_LONG`` with ``COMMAND_ACK``.
 
-* sends ``HEARTBEAT`` (quadrotor; armed flag; system status STANDBY / ACTIVE / FLIGHT_TERMINATION),
-  ``LOCAL_POSITION_NED`` (50 Hz), ``SYS_STATUS`` (battery voltage and remaining) and
-  ``EXTENDED_SYS_STATE`` (landed state); rates change with ``MAV_CMD_SET_MESSAGE_INTERVAL``;
-* ``COMMAND_LONG``: ``COMPONENT_ARM_DISARM`` (disarm in the air only with the force magic 21196),
-  ``NAV_TAKEOFF`` (param7: height [m, up, above the local origin]), ``NAV_LAND`` (param7: landing height),
-  ``DO_CHANGE_SPEED`` (speed types 0/1 horizontal, 2 climb, 3 descent), ``DO_FLIGHTTERMINATION`` (motors
-  off, locked until ``PREFLIGHT_REBOOT_SHUTDOWN``), ``SET_MESSAGE_INTERVAL``; each answered by ``COMMAND_ACK``;
-* ``SET_POSITION_TARGET_LOCAL_NED`` in ``MAV_FRAME_LOCAL_NED``: position targets when the type mask uses the
-  position, else velocity targets; accepted only in the air. A velocity target older than
-  ``setpoint_timeout`` (0.5 s) turns into a position hold where the drone is;
-* fence upload with the mission protocol, ``mission_type = MAV_MISSION_TYPE_FENCE`` (the encoding is in
-  ``groundstation.mavlink_link``): inclusion polygon, exclusion circles, ceiling. Leaving it in the air lands
-  the vehicle (its own backstop behind the ground station's geofence);
-* GCS heartbeat loss: armed and no ``HEARTBEAT`` from a GCS for ``gcs_timeout`` (1 s) -> land (on the ground:
-  disarm).
+ArduCopter (sources cited at each rule): boots in STABILIZE; ``SET_MODE`` / ``MAV_CMD_DO_SET_MODE`` change the
+mode (``SET_MODE`` acked with command id 11, as ``GCS_MAVLINK::handle_set_mode`` does); arming is refused in
+modes that do not allow it (LAND, RTL: ``allows_arming`` in ``ArduCopter/mode.h``) and outside an enabled fence;
+``SET_POSITION_TARGET_LOCAL_NED`` is ignored unless the mode is GUIDED
+(``GCS_MAVLINK_Copter::handle_message_set_position_target_local_ned``); a velocity target older than
+``GUID_TIMEOUT`` (3 s) becomes a stop (``ModeGuided``); ``MAV_CMD_NAV_TAKEOFF`` (param7: altitude above home
+[m]) only in GUIDED, armed and landed, else ``MAV_RESULT_FAILED`` (``handle_MAV_CMD_NAV_TAKEOFF``);
+``MAV_CMD_NAV_LAND`` switches to LAND, which descends at ``LAND_SPEED`` and disarms on touchdown; RTL climbs to
+``RTL_ALT`` (kept ``FENCE_MARGIN`` under an enabled ceiling), flies home and lands; the GCS failsafe
+(``FS_GCS_ENABLE``, ``FS_GCS_TIMEOUT``; ``ArduCopter/events.cpp``) starts once a GCS heartbeat was seen and,
+when it fires, disarms a landed vehicle or takes its action (LAND after a 4 s pause, or RTL);
+``MAV_CMD_DO_FLIGHTTERMINATION`` disarms (``GCS_MAVLINK_Copter::handle_flight_termination``).
 
-Physics: ``groundstation.sim.flight_model.QuadBatch`` with one drone (the same first-order, speed- and
-acceleration-limited, ground-contact model as the simulated Crazyflies), driven by a position controller
-(desired velocity = ``kp_pos`` x error). The world frame is x east, y north, z up; the vehicle reports and
-accepts NED (``ned_to_enu`` / ``enu_to_ned``).
+PX4: boots in AUTO.LOITER (Hold); ``MAV_CMD_NAV_TAKEOFF`` switches to AUTO.TAKEOFF (param7: AMSL altitude, NaN:
+``MIS_TAKEOFF_ALT`` above home) and holds (AUTO.LOITER) at the top; OFFBOARD is accepted only while setpoints
+have been arriving (the last one within ``COM_OF_LOSS_T``: ``HealthAndArmingChecks/checks/offboardCheck.cpp``),
+else ``TEMPORARILY_REJECTED``; setpoints fly the vehicle only in OFFBOARD; losing them there for
+``COM_OF_LOSS_T`` takes ``COM_OBL_RC_ACT`` (no RC here, so 0 "position" holds); ``NAV_DLL_ACT`` after
+``COM_DL_LOSS_T`` without a GCS heartbeat; AUTO.LAND disarms ``COM_DISARM_LAND`` after touchdown; flight
+termination locks the vehicle until ``MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN``.
+
+Physics: ``groundstation.sim.flight_model.QuadBatch`` with one drone, driven by a position controller (desired
+velocity = ``kp_pos`` x error). World frame x east, y north, z up; NED on the wire.
 
 >>> with MavlinkVehicle("udpout:127.0.0.1:14550") as vehicle:   # a ground station listens on 14550
 ...     ...
 """
 from __future__ import annotations
 
-import enum
 import logging
 import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from groundstation.mavlink_link import (FORCE_DISARM_MAGIC, LOCAL_XY_SCALE, TYPE_MASK_IGNORE_POSITION,
-                                        TYPE_MASK_IGNORE_VELOCITY, enu_to_ned, mavlink_module, ned_to_enu,
-                                        open_mavlink)
+from groundstation.mavlink_autopilot import (COPTER_MODES, PX4_MODES, Autopilot, GlobalOrigin, mode_from_set_mode,
+                                             px4_custom_mode)
+from groundstation.mavlink_link import (FORCE_DISARM_MAGIC, TYPE_MASK_IGNORE_POSITION, TYPE_MASK_IGNORE_VELOCITY,
+                                        enu_to_ned, mavlink_module, ned_to_enu, open_mavlink)
 from groundstation.sim.flight_model import QuadBatch, QuadParams
+from groundstation.sim.mavlink_commands import AIRBORNE, AutopilotCommands, VehicleMode
+from groundstation.sim.mavlink_fence import FenceReceiver, VehicleFence
 
 logger = logging.getLogger(__name__)
+
+ARDUPILOT_PARAMS = {"FS_GCS_ENABLE": 0.0, "FS_GCS_TIMEOUT": 5.0, "GUID_TIMEOUT": 3.0, "LAND_SPEED": 50.0,
+                    "WPNAV_SPEED_UP": 250.0, "RTL_ALT": 1500.0, "FENCE_ENABLE": 0.0, "FENCE_TYPE": 7.0,
+                    "FENCE_ALT_MAX": 100.0, "FENCE_ACTION": 1.0, "FENCE_MARGIN": 2.0, "SYSID_MYGCS": 255.0}
+"""ArduCopter parameter defaults the simulator uses (``ArduCopter/Parameters.cpp``; speeds in cm/s, RTL_ALT cm)."""
+PX4_PARAMS = {"NAV_DLL_ACT": 0.0, "COM_DL_LOSS_T": 10.0, "COM_OF_LOSS_T": 1.0, "COM_OBL_RC_ACT": 0.0,
+              "COM_DISARM_LAND": 2.0, "MIS_TAKEOFF_ALT": 2.5, "MPC_LAND_SPEED": 0.7, "MPC_TKO_SPEED": 1.5,
+              "RTL_RETURN_ALT": 60.0, "GF_ACTION": 2.0, "GF_MAX_VER_DIST": 0.0}
+"""PX4 parameter defaults the simulator uses (``commander_params.c``, ``navigator`` and ``mc_pos_control`` params)."""
+LAND_PAUSE = 4.0
+"""A failsafe LAND waits this long before descending [s] (ArduCopter ``LAND_WITH_DELAY_MS``)."""
 
 
 @dataclass(frozen=True)
 class VehicleConfig:
     """Behaviour of the simulated vehicle."""
 
+    autopilot: Autopilot = Autopilot.ARDUPILOT
+    """Which firmware it behaves as."""
     system_id: int = 1
     component_id: int = 1
-    heartbeat_period: float = 0.5
-    """Seconds between two HEARTBEATs [s]."""
+    params: Mapping[str, float] = field(default_factory=dict)
+    """Parameter values at boot, over the firmware defaults (``ARDUPILOT_PARAMS`` / ``PX4_PARAMS``)."""
+    origin: GlobalOrigin = GlobalOrigin(-35.363261, 149.165230, 584.0)
+    """EKF origin and home (ArduPilot SITL's default location)."""
+    heartbeat_period: float = 1.0
+    """Seconds between two HEARTBEATs [s] (both firmwares send 1 Hz)."""
     position_rate: float = 50.0
     """Default LOCAL_POSITION_NED rate [Hz]."""
     status_rate: float = 5.0
     """Default SYS_STATUS and EXTENDED_SYS_STATE rate [Hz]."""
     physics_rate: float = 200.0
     """Simulation steps per second [Hz]."""
-    gcs_timeout: float = 1.0
-    """GCS heartbeat silence after which an armed vehicle lands [s]."""
-    setpoint_timeout: float = 0.5
-    """Age of a velocity setpoint after which the vehicle holds position [s]."""
-    climb_speed: float = 0.5
-    """Default takeoff climb speed [m/s]."""
-    descent_speed: float = 0.4
-    """Default landing descent speed [m/s]."""
     arrive_tolerance: float = 0.05
     """Takeoff is over within this distance of its height [m]."""
     max_step: float = 0.05
@@ -76,69 +96,27 @@ class VehicleConfig:
     """Flight model (time constant, speed and acceleration limits, estimation noise, battery)."""
 
 
-class VehicleMode(enum.Enum):
-    DISARMED = 0
-    IDLE = 1
-    """Armed on the ground."""
-    TAKEOFF = 2
-    HOLD = 3
-    """Holding a position (after takeoff, after a position setpoint, or when velocity setpoints stopped)."""
-    VELOCITY = 4
-    LAND = 5
-    TERMINATED = 6
-    """Flight terminated: motors off until rebooted."""
-
-
-AIRBORNE = (VehicleMode.TAKEOFF, VehicleMode.HOLD, VehicleMode.VELOCITY)
-
-
-@dataclass(frozen=True)
-class VehicleFence:
-    """The fence as uploaded (world frame)."""
-
-    polygon: np.ndarray
-    """[n, 2] inclusion corners [m]."""
-    circles: tuple[tuple[float, float, float], ...]
-    """Exclusion circles (x, y, radius) [m]."""
-    z_max: float
-    """Ceiling [m, up]; inf when none was given."""
-
-    def contains(self, p: np.ndarray) -> bool:
-        if p[2] > self.z_max:
-            return False
-        if any(math.hypot(p[0] - x, p[1] - y) < r for x, y, r in self.circles):
-            return False
-        if len(self.polygon) < 3:
-            return True
-        return _point_in_polygon(self.polygon, p[0], p[1])
-
-
-def _point_in_polygon(poly: np.ndarray, x: float, y: float) -> bool:
-    inside = False
-    n = len(poly)
-    for i in range(n):
-        (x0, y0), (x1, y1) = poly[i], poly[(i + 1) % n]
-        if (y0 > y) != (y1 > y) and x < x0 + (y - y0) * (x1 - x0) / (y1 - y0):
-            inside = not inside
-    return inside
-
-
-class MavlinkVehicle:
+class MavlinkVehicle(AutopilotCommands):
     """One simulated vehicle on its own thread. ``start()`` / ``stop()`` or use as a context manager."""
 
     def __init__(self, connection: str, config: VehicleConfig | None = None,
                  start: tuple[float, float, float] = (0.0, 0.0, 0.0), seed: int = 0,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.connection = connection
-        self.config = config or VehicleConfig()
+        self.config = c = config or VehicleConfig()
+        self.autopilot = Autopilot(c.autopilot)
+        self.px4 = self.autopilot is Autopilot.PX4
         self.clock = clock
         self._mav = mavlink_module()
-        c = self.config
+        self.params = dict(PX4_PARAMS if self.px4 else ARDUPILOT_PARAMS)
+        self.params.update({k.upper(): float(v) for k, v in c.params.items()})
         self.quad = QuadBatch(1, c.quad, np.array([start], dtype=float), seed)
+        self.home = np.array([start[0], start[1], c.quad.ground_z])
         self.mode = VehicleMode.DISARMED
-        self.fence: VehicleFence | None = None
+        self.flight_mode = "LOITER" if self.px4 else "STABILIZE"
         self.fence_breaches = 0
         self.failsafe_landings = 0
+        """Landings (or returns) the vehicle started by itself: GCS loss, offboard loss, fence."""
         self.ignored_setpoints = 0
         self.setpoints_received = 0
         self.commands: list[tuple[int, int]] = []
@@ -147,13 +125,16 @@ class MavlinkVehicle:
         self._vel_cmd = np.zeros(3)
         self._yaw_rate = 0.0
         self._setpoint_t = -math.inf
-        self._land_height = c.quad.ground_z
-        self._climb = c.climb_speed
-        self._descent = c.descent_speed
+        self._stream_t = -math.inf  # latest setpoint of any kind (PX4's offboard proof of life)
+        self._climb = c.quad.max_speed_z
+        self._climb_set: float | None = None  # by DO_CHANGE_SPEED, else the firmware's takeoff speed
+        self._pending_takeoff = self.home[2] + self.params.get("MIS_TAKEOFF_ALT", 1.0)
+        self._descent: float | None = None
         self._max_xy = c.quad.max_speed_xy
+        self._land_pause_until = -math.inf
+        self._landed_at: float | None = None
         self._last_gcs = -math.inf
-        self._gcs_seen = False
-        self._armed_at = -math.inf
+        self._gcs_failsafe = False
         self._intervals = {
             self._mav.MAVLINK_MSG_ID_HEARTBEAT: c.heartbeat_period,
             self._mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1.0 / c.position_rate,
@@ -161,11 +142,11 @@ class MavlinkVehicle:
             self._mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0 / c.status_rate,
         }
         self._due: dict[int, float] = {k: 0.0 for k in self._intervals}
-        self._rx: dict[str, Any] | None = None  # fence upload in progress
         self._t_boot = clock()
         self.link_alive = True
         """False after ``kill_link()``: the vehicle neither hears nor sends (a radio out of range)."""
         self._conn: Any = None
+        self._fences = FenceReceiver(self._mav, lambda: self._conn.mav, c.origin, c.system_id, clock)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.lock = threading.Lock()
@@ -179,7 +160,7 @@ class MavlinkVehicle:
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"mavlink-vehicle {self.connection}", daemon=True)
         self._thread.start()
-        logger.info("simulated MAVLink vehicle %d on %s", c.system_id, self.connection)
+        logger.info("simulated %s vehicle %d on %s", self.autopilot.value, c.system_id, self.connection)
         return self
 
     def stop(self) -> None:
@@ -198,8 +179,8 @@ class MavlinkVehicle:
         self.stop()
 
     def kill_link(self) -> None:
-        """Go silent in both directions (a radio out of range); the vehicle flies on by itself and, missing
-        the ground station's heartbeats, lands after ``gcs_timeout``."""
+        """Go silent in both directions (a radio out of range); the vehicle flies on by itself until its own
+        failsafes act."""
         with self.lock:
             self.link_alive = False
 
@@ -228,6 +209,22 @@ class MavlinkVehicle:
     @property
     def armed(self) -> bool:
         return self.mode not in (VehicleMode.DISARMED, VehicleMode.TERMINATED)
+
+    @property
+    def fence(self) -> VehicleFence | None:
+        return self._fences.fence
+
+    @property
+    def fence_ceiling(self) -> float:
+        """The ceiling [m, up] the vehicle enforces (inf when off)."""
+        p = self.params
+        if self.px4:
+            return self.home[2] + p["GF_MAX_VER_DIST"] if p["GF_MAX_VER_DIST"] > 0 else math.inf
+        return self.home[2] + p["FENCE_ALT_MAX"] if p["FENCE_ENABLE"] and int(p["FENCE_TYPE"]) & 1 else math.inf
+
+    def _fence_on(self) -> bool:
+        return self.fence is not None and (self.params["GF_ACTION"] > 0 if self.px4 else
+                                           self.params["FENCE_ENABLE"] > 0)
 
     def _on_ground(self) -> bool:
         return bool(self.quad.pos[0, 2] <= self.config.quad.ground_z + 0.01)
@@ -261,7 +258,7 @@ class MavlinkVehicle:
                     self.step(dt, now)
                 if self.link_alive:
                     self._send_due(now)
-                    self._mission_retry(now)
+                    self._fences.retry(now)
             wait = period - (self.clock() - now)
             if wait > 0:
                 try:
@@ -272,58 +269,162 @@ class MavlinkVehicle:
 
     def step(self, dt: float, now: float) -> None:
         """Failsafes, controller and physics for ``dt`` [s] ending at ``now`` [s]."""
-        c = self.config
-        q = c.quad
+        self._failsafes(now)
+        q = self.config.quad
         p = self.quad.pos[0]
-        armed_ref = max(self._last_gcs, self._armed_at)
-        if self.armed and now - armed_ref > c.gcs_timeout:
-            if self.mode in AIRBORNE:
-                logger.warning("vehicle %d: no GCS heartbeat for %.1f s: landing", c.system_id, now - armed_ref)
-                self.failsafe_landings += 1
-                self._start_land(q.ground_z)
-            elif self.mode is VehicleMode.IDLE:
-                logger.warning("vehicle %d: no GCS heartbeat on the ground: disarming", c.system_id)
-                self._set_mode(VehicleMode.DISARMED)
-        if self.fence is not None and self.mode in AIRBORNE and not self.fence.contains(p):
-            logger.warning("vehicle %d: fence breached at (%.2f, %.2f, %.2f): landing", c.system_id, *p)
-            self.fence_breaches += 1
-            self._start_land(q.ground_z)
-        if self.mode is VehicleMode.VELOCITY and now - self._setpoint_t > c.setpoint_timeout:
-            logger.info("vehicle %d: velocity setpoints stopped: holding", c.system_id)
-            self._target = p.copy()
-            self._set_mode(VehicleMode.HOLD)
-
         v_des = np.zeros(3)
-        motors = self.mode not in (VehicleMode.DISARMED, VehicleMode.TERMINATED)
+        motors = self.armed
         if self.mode in (VehicleMode.TAKEOFF, VehicleMode.HOLD):
             v_des = q.kp_pos * (self._target - p)
             if self.mode is VehicleMode.TAKEOFF:
                 v_des[2] = min(max(v_des[2], -self._climb), self._climb)
-                if abs(self._target[2] - p[2]) < c.arrive_tolerance:
-                    self._set_mode(VehicleMode.HOLD)
+                if abs(self._target[2] - p[2]) < self.config.arrive_tolerance:
+                    self._takeoff_done()
         elif self.mode is VehicleMode.VELOCITY:
             v_des = self._vel_cmd.copy()
+        elif self.mode is VehicleMode.RTL:
+            v_des = self._rtl_velocity(p)
         elif self.mode is VehicleMode.LAND:
             v_des[:2] = q.kp_pos * (self._target[:2] - p[:2])
-            v_des[2] = -self._descent
-            if p[2] <= max(self._land_height, q.ground_z) + 0.02:
-                logger.info("vehicle %d: landed at (%.2f, %.2f, %.2f): disarming", c.system_id, *p)
-                self._set_mode(VehicleMode.DISARMED)
-                motors = False
+            v_des[2] = 0.0 if now < self._land_pause_until else -self._land_speed()
+        elif self.mode is VehicleMode.IDLE and self._landed_at is not None:
+            # PX4 disarms COM_DISARM_LAND after the land detector fired
+            if now - self._landed_at >= self.params["COM_DISARM_LAND"]:
+                self._disarm("landed")
+        if self.mode is VehicleMode.LAND and p[2] <= q.ground_z + 0.02:
+            logger.info("vehicle %d: landed at (%.2f, %.2f, %.2f)", self.config.system_id, *p)
+            if self.px4 and self.params["COM_DISARM_LAND"] > 0:
+                self._landed_at = now
+                self.mode = VehicleMode.IDLE
+            else:
+                self._disarm("landed")
+            motors = self.armed
+            v_des[:] = 0.0
         hs = math.hypot(v_des[0], v_des[1])
         if hs > self._max_xy:
             v_des[:2] *= self._max_xy / hs
         self.quad.step(dt, v_des[None, :], np.array([math.degrees(self._yaw_rate)]), np.array([motors]))
 
-    def _set_mode(self, mode: VehicleMode) -> None:
-        if mode is not self.mode:
-            logger.debug("vehicle %d: %s -> %s", self.config.system_id, self.mode.name, mode.name)
-            self.mode = mode
+    def _land_speed(self) -> float:
+        if self._descent is not None:
+            return self._descent
+        speed = self.params["MPC_LAND_SPEED"] if self.px4 else self.params["LAND_SPEED"] / 100.0
+        return min(speed, self.config.quad.max_speed_z)
 
-    def _start_land(self, height: float) -> None:
+    def _rtl_velocity(self, p: np.ndarray) -> np.ndarray:
+        """Climb to the return altitude, fly home, then land (ArduCopter ``mode_rtl.cpp`` / PX4 ``rtl.cpp``)."""
+        q = self.config.quad
+        v = np.zeros(3)
+        if p[2] < self._target[2] - self.config.arrive_tolerance:
+            v[2] = min(q.kp_pos * (self._target[2] - p[2]), self._climb)
+            return v
+        v = q.kp_pos * (self._target - p)
+        if math.hypot(*(self._target[:2] - p[:2])) < self.config.arrive_tolerance:
+            self._start_land(pause=False)
+        return v
+
+    def _takeoff_done(self) -> None:
+        self.mode = VehicleMode.HOLD
+        if self.px4:
+            self.flight_mode = "LOITER"  # PX4 holds at the end of AUTO.TAKEOFF
+
+    # ---- failsafes ---------------------------------------------------------------------------------
+
+    def _failsafes(self, now: float) -> None:
+        p = self.quad.pos[0]
+        silent = now - self._last_gcs
+        if self.px4:
+            if self.flight_mode == "OFFBOARD" and now - self._stream_t > self.params["COM_OF_LOSS_T"] \
+                    and self.mode in AIRBORNE:
+                action = {3: "RTL", 4: "LAND"}.get(int(self.params["COM_OBL_RC_ACT"]), "LOITER")
+                self._failsafe(f"offboard setpoints lost for {now - self._stream_t:.2f} s", action)
+            dll = {1: "LOITER", 2: "RTL", 3: "LAND"}.get(int(self.params["NAV_DLL_ACT"]))
+            if dll and math.isfinite(self._last_gcs) and silent > self.params["COM_DL_LOSS_T"] \
+                    and not self._gcs_failsafe and self.armed:
+                self._gcs_failsafe = True
+                if self.mode in AIRBORNE:
+                    self._failsafe(f"no GCS heartbeat for {silent:.2f} s", dll)
+        elif int(self.params["FS_GCS_ENABLE"]) and math.isfinite(self._last_gcs) \
+                and silent > self.params["FS_GCS_TIMEOUT"] and not self._gcs_failsafe:
+            # ArduCopter events.cpp failsafe_gcs_on_event: once per loss; landed -> disarm; else the action
+            self._gcs_failsafe = True
+            if self.mode is VehicleMode.IDLE:
+                self._disarm("GCS failsafe on the ground")
+            elif self.mode in AIRBORNE:
+                action = "LAND" if int(self.params["FS_GCS_ENABLE"]) in (4, 5, 7) else "RTL"
+                self._failsafe(f"no GCS heartbeat for {silent:.2f} s", action)
+        if self._fence_on() and self.mode in AIRBORNE and not self.fence.contains(p, self.fence_ceiling):
+            self.fence_breaches += 1
+            if self.px4:
+                action = {2: "LOITER", 3: "RTL", 5: "LAND"}.get(int(self.params["GF_ACTION"]))
+            else:
+                action = {1: "RTL", 2: "LAND"}.get(int(self.params["FENCE_ACTION"]), "LAND")
+            if action is not None:
+                self._failsafe(f"fence breached at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})", action)
+        if not self.px4 and self.mode is VehicleMode.VELOCITY \
+                and now - self._setpoint_t > max(self.params["GUID_TIMEOUT"], 0.1):
+            # ModeGuided: a velocity target older than GUID_TIMEOUT is replaced by a stop
+            self._target = p.copy()
+            self.mode = VehicleMode.HOLD
+
+    def _failsafe(self, why: str, action: str) -> None:
+        if self.flight_mode == action:
+            return
+        logger.warning("vehicle %d: %s: %s", self.config.system_id, why, action)
+        self.failsafe_landings += action in ("LAND", "RTL")
+        self._enter_mode(action, pause=not self.px4 and action == "LAND")
+
+    # ---- modes -------------------------------------------------------------------------------------
+
+    def _enter_mode(self, name: str, pause: bool = False) -> None:
+        """Switch the autopilot's mode and what the vehicle does in it."""
+        if name != self.flight_mode:
+            logger.info("vehicle %d: mode %s -> %s", self.config.system_id, self.flight_mode, name)
+        self.flight_mode = name
+        airborne = self.mode in AIRBORNE or self.mode is VehicleMode.LAND
+        if name == "LAND":
+            if airborne:
+                self._start_land(pause)
+            elif self.mode is VehicleMode.IDLE and not self.px4:
+                self._disarm("LAND on the ground")
+        elif name == "RTL" and airborne:
+            z = max(self.quad.pos[0, 2], self._rtl_altitude())
+            self._target = np.array([self.home[0], self.home[1], z])
+            self.mode = VehicleMode.RTL
+        elif name == "TAKEOFF":
+            pass  # started by the takeoff command (or by arming while in TAKEOFF)
+        elif airborne:  # GUIDED, LOITER, OFFBOARD, POSCTL, BRAKE...: hold where it is until told otherwise
+            self._target = self._stopping_point()
+            self.mode = VehicleMode.HOLD
+
+    def _rtl_altitude(self) -> float:
+        p = self.params
+        alt = self.home[2] + (p["RTL_RETURN_ALT"] if self.px4 else p["RTL_ALT"] / 100.0)
+        margin = 0.0 if self.px4 else p["FENCE_MARGIN"]
+        return min(alt, self.fence_ceiling - margin)
+
+    def _stopping_point(self) -> np.ndarray:
+        return self.quad.pos[0] + self.quad.vel[0] / max(self.config.quad.kp_pos, 1e-3)
+
+    def _start_land(self, pause: bool = False) -> None:
         self._target = self.quad.pos[0].copy()
-        self._land_height = height
-        self._set_mode(VehicleMode.LAND)
+        self._land_pause_until = self.clock() + LAND_PAUSE if pause else -math.inf
+        self.mode = VehicleMode.LAND
+        self.flight_mode = "LAND"
+
+    def _disarm(self, why: str) -> None:
+        logger.info("vehicle %d: disarmed (%s)", self.config.system_id, why)
+        self.mode = VehicleMode.DISARMED
+        self._landed_at = None
+        self._descent = None
+
+    def reboot(self) -> None:
+        """Back to disarmed with fresh defaults (clears a flight termination)."""
+        self.mode = VehicleMode.DISARMED
+        self.flight_mode = "LOITER" if self.px4 else "STABILIZE"
+        self._climb, self._climb_set = self.config.quad.max_speed_z, None
+        self._descent, self._max_xy = None, self.config.quad.max_speed_xy
+        self.quad.vel[:] = 0.0
 
     # ---- sending -----------------------------------------------------------------------------------
 
@@ -334,17 +435,33 @@ class MavlinkVehicle:
             self._due[msg_id] = max(self._due[msg_id] + interval, now)
             self._send_message(msg_id, now)
 
+    def _heartbeat(self) -> tuple[int, int, int, int]:
+        """(autopilot, base_mode, custom_mode, system_status) as each firmware reports them."""
+        mav = self._mav
+        base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mav.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        if self.px4:
+            main, sub = PX4_MODES[self.flight_mode]
+            status = (mav.MAV_STATE_FLIGHT_TERMINATION if self.mode is VehicleMode.TERMINATED
+                      else mav.MAV_STATE_ACTIVE if self.armed else mav.MAV_STATE_STANDBY)
+            if main in (4, 6):  # auto and offboard: mavutil.px4_map's auto_mode_flags
+                base |= mav.MAV_MODE_FLAG_AUTO_ENABLED | mav.MAV_MODE_FLAG_GUIDED_ENABLED | \
+                    mav.MAV_MODE_FLAG_STABILIZE_ENABLED
+            return mav.MAV_AUTOPILOT_PX4, base, px4_custom_mode(main, sub), status
+        # GCS_MAVLINK_Copter::base_mode() and vehicle_system_status()
+        base |= mav.MAV_MODE_FLAG_STABILIZE_ENABLED | mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        if self.flight_mode in ("GUIDED", "LOITER", "RTL", "LAND", "AUTO", "BRAKE", "POSHOLD"):
+            base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED
+        status = (mav.MAV_STATE_CRITICAL if self._gcs_failsafe and self.armed
+                  else mav.MAV_STATE_STANDBY if self.mode in (VehicleMode.DISARMED, VehicleMode.IDLE)
+                  else mav.MAV_STATE_ACTIVE)
+        return mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base, COPTER_MODES[self.flight_mode], status
+
     def _send_message(self, msg_id: int, now: float) -> None:
         mav, m = self._mav, self._conn.mav
         boot_ms = int((now - self._t_boot) * 1000) & 0xFFFFFFFF
         if msg_id == mav.MAVLINK_MSG_ID_HEARTBEAT:
-            base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_GUIDED_ENABLED
-            if self.armed:
-                base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
-            status = (mav.MAV_STATE_FLIGHT_TERMINATION if self.mode is VehicleMode.TERMINATED
-                      else mav.MAV_STATE_ACTIVE if self.mode in AIRBORNE + (VehicleMode.LAND,)
-                      else mav.MAV_STATE_STANDBY)
-            m.heartbeat_send(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_GENERIC, base, self.mode.value, status)
+            autopilot, base, custom, status = self._heartbeat()
+            m.heartbeat_send(mav.MAV_TYPE_QUADROTOR, autopilot, base, custom, status)
         elif msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             est = self.quad.estimated_position(0, extpos_fresh=False)
             vel = self.quad.estimated_velocity(0)
@@ -356,6 +473,14 @@ class MavlinkVehicle:
             m.sys_status_send(0, 0, 0, 0, int(volts * 1000), -1, remaining, 0, 0, 0, 0, 0, 0)
         elif msg_id == mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             m.extended_sys_state_send(mav.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
+        elif msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            o = self.config.origin
+            m.gps_global_origin_send(round(o.lat * 1e7), round(o.lon * 1e7), round(o.alt * 1000), 0)
+        elif msg_id == mav.MAVLINK_MSG_ID_HOME_POSITION:
+            o = self.config.origin
+            n, e, d = enu_to_ned(*self.home)
+            m.home_position_send(round(o.lat * 1e7), round(o.lon * 1e7), round(o.alt * 1000), n, e, d,
+                                 [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0)
 
     def _landed_state(self) -> int:
         mav = self._mav
@@ -373,12 +498,13 @@ class MavlinkVehicle:
         mav = self._mav
         kind = msg.get_type()
         if kind == "HEARTBEAT":
-            if msg.type == mav.MAV_TYPE_GCS:
-                self._last_gcs = self.clock()
-                if not self._gcs_seen:
-                    self._gcs_seen = True
+            # both firmwares count only their own GCS (ArduPilot: SYSID_MYGCS; PX4: any GCS-type heartbeat)
+            if msg.type == mav.MAV_TYPE_GCS and (self.px4 or msg.get_srcSystem() == int(self.params["SYSID_MYGCS"])):
+                if not math.isfinite(self._last_gcs):
                     logger.info("vehicle %d: ground station %d connected", self.config.system_id,
                                 msg.get_srcSystem())
+                self._last_gcs = self.clock()
+                self._gcs_failsafe = False
             return
         target = getattr(msg, "target_system", None)
         if target not in (None, 0, self.config.system_id):
@@ -387,176 +513,29 @@ class MavlinkVehicle:
             result = self._command(msg)
             self.commands.append((msg.command, result))
             self._conn.mav.command_ack_send(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        elif kind == "SET_MODE":
+            name = mode_from_set_mode(self.autopilot, msg.base_mode, msg.custom_mode, 0) if not self.px4 else \
+                mode_from_set_mode(self.autopilot, msg.base_mode, (msg.custom_mode >> 16) & 0xFF,
+                                   (msg.custom_mode >> 24) & 0xFF)
+            result = self._set_mode(name)
+            # GCS_MAVLINK::handle_set_mode acks the message with its message id as the "command"
+            self._conn.mav.command_ack_send(mav.MAVLINK_MSG_ID_SET_MODE, result, 0, 0, msg.get_srcSystem(),
+                                            msg.get_srcComponent())
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
             self._setpoint(msg)
         elif kind in ("MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_CLEAR_ALL"):
-            self._mission(kind, msg)
+            self._fences.handle(kind, msg)
+        elif kind in ("PARAM_SET", "PARAM_REQUEST_READ"):
+            self._param(kind, msg)
 
-    def _command(self, msg: Any) -> int:
-        mav = self._mav
-        cmd, p = msg.command, (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
-        ok, denied = mav.MAV_RESULT_ACCEPTED, mav.MAV_RESULT_DENIED
-        ground = self.config.quad.ground_z
-        if cmd == mav.MAV_CMD_COMPONENT_ARM_DISARM:
-            if p[0] >= 0.5:
-                if self.mode is VehicleMode.TERMINATED:
-                    return denied
-                if self.mode is VehicleMode.DISARMED:
-                    self._armed_at = self.clock()
-                    self._target = self.quad.pos[0].copy()
-                    self._set_mode(VehicleMode.IDLE)
-                return ok
-            if self.mode in AIRBORNE + (VehicleMode.LAND,) and p[1] != FORCE_DISARM_MAGIC:
-                return denied
-            if self.mode is not VehicleMode.TERMINATED:
-                self._set_mode(VehicleMode.DISARMED)
-            return ok
-        if cmd == mav.MAV_CMD_NAV_TAKEOFF:
-            if not self.armed or self.mode is VehicleMode.LAND:
-                return denied
-            height = p[6] if math.isfinite(p[6]) else 1.0
-            if height <= ground + self.config.arrive_tolerance:
-                return denied
-            self._target = np.array([*self.quad.pos[0, :2], height])
-            self._set_mode(VehicleMode.TAKEOFF)
-            return ok
-        if cmd == mav.MAV_CMD_NAV_LAND:
-            if self.mode in AIRBORNE:
-                self._start_land(p[6] if math.isfinite(p[6]) else ground)
-            return ok
-        if cmd == mav.MAV_CMD_DO_CHANGE_SPEED:
-            speed = p[1]
-            if not (math.isfinite(speed) and speed > 0):
-                return ok if speed == -1 else denied
-            kind = int(p[0])
-            if kind == 2:
-                self._climb = min(speed, self.config.quad.max_speed_z)
-            elif kind == 3:
-                self._descent = min(speed, self.config.quad.max_speed_z)
-            elif kind in (0, 1):
-                self._max_xy = min(speed, self.config.quad.max_speed_xy)
-            else:
-                return denied
-            return ok
-        if cmd == mav.MAV_CMD_DO_FLIGHTTERMINATION:
-            if p[0] >= 0.5:
-                logger.warning("vehicle %d: flight terminated", self.config.system_id)
-                self._set_mode(VehicleMode.TERMINATED)
-            return ok
-        if cmd == mav.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
-            if p[0] != 1 or not self._on_ground():
-                return denied
-            self.reboot()
-            return ok
-        if cmd == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-            msg_id, interval_us = int(p[0]), p[1]
-            if msg_id not in self._intervals:
-                return mav.MAV_RESULT_UNSUPPORTED
-            if interval_us == 0:  # default rate
-                return ok
-            self._intervals[msg_id] = None if interval_us < 0 else interval_us / 1e6
-            return ok
-        return mav.MAV_RESULT_UNSUPPORTED
-
-    def reboot(self) -> None:
-        """Back to disarmed with fresh defaults (clears a flight termination)."""
-        c = self.config
-        self._set_mode(VehicleMode.DISARMED)
-        self._climb, self._descent, self._max_xy = c.climb_speed, c.descent_speed, c.quad.max_speed_xy
-        self.quad.vel[:] = 0.0
-
-    def _setpoint(self, msg: Any) -> None:
-        self.setpoints_received += 1
-        if msg.coordinate_frame != self._mav.MAV_FRAME_LOCAL_NED or self.mode not in AIRBORNE:
-            self.ignored_setpoints += 1
-            return
-        mask = msg.type_mask
-        if not mask & TYPE_MASK_IGNORE_POSITION:
-            self._target = np.array(ned_to_enu(msg.x, msg.y, msg.z))
-            self._yaw_rate = 0.0
-            self._set_mode(VehicleMode.HOLD)
-        elif not mask & TYPE_MASK_IGNORE_VELOCITY:
-            self._vel_cmd = np.array(ned_to_enu(msg.vx, msg.vy, msg.vz))
-            self._yaw_rate = -msg.yaw_rate if math.isfinite(msg.yaw_rate) else 0.0
-            self._set_mode(VehicleMode.VELOCITY)
-        else:
-            self.ignored_setpoints += 1
-            return
-        self._setpoint_t = self.clock()
-
-    # ---- fence upload (mission protocol, fence mission type) ---------------------------------------
-
-    def _mission(self, kind: str, msg: Any) -> None:
-        mav, m = self._mav, self._conn.mav
-        src, comp = msg.get_srcSystem(), msg.get_srcComponent()
-        if msg.mission_type != mav.MAV_MISSION_TYPE_FENCE:
-            m.mission_ack_send(src, comp, mav.MAV_MISSION_UNSUPPORTED, msg.mission_type)
-            return
-        if kind == "MISSION_CLEAR_ALL":
-            self.fence, self._rx = None, None
-            logger.info("vehicle %d: fence cleared", self.config.system_id)
-            m.mission_ack_send(src, comp, mav.MAV_MISSION_ACCEPTED, msg.mission_type)
-        elif kind == "MISSION_COUNT":
-            if msg.count == 0:
-                self.fence, self._rx = None, None
-                m.mission_ack_send(src, comp, mav.MAV_MISSION_ACCEPTED, msg.mission_type)
-                return
-            self._rx = {"count": msg.count, "items": [], "src": src, "comp": comp, "t": self.clock(), "tries": 0}
-            m.mission_request_int_send(src, comp, 0, msg.mission_type)
-        elif kind == "MISSION_ITEM_INT":
-            rx = self._rx
-            if rx is None:
-                return
-            if msg.seq != len(rx["items"]):  # a repeat or out of order: ask again for the one we need
-                m.mission_request_int_send(src, comp, len(rx["items"]), msg.mission_type)
-                return
-            rx["items"].append(msg)
-            rx["t"], rx["tries"] = self.clock(), 0
-            if len(rx["items"]) < rx["count"]:
-                m.mission_request_int_send(src, comp, len(rx["items"]), msg.mission_type)
-                return
-            self._rx = None
-            result = self._accept_fence(rx["items"])
-            m.mission_ack_send(src, comp, result, msg.mission_type)
-
-    def _mission_retry(self, now: float, after: float = 0.5, tries: int = 5) -> None:
-        """Ask again for an item that did not come; give up (OPERATION_CANCELLED) after ``tries``."""
-        rx, mav = self._rx, self._mav
-        if rx is None or now - rx["t"] < after:
-            return
-        if rx["tries"] >= tries:
-            logger.warning("vehicle %d: fence upload stalled at item %d of %d: cancelled", self.config.system_id,
-                           len(rx["items"]), rx["count"])
-            self._rx = None
-            self._conn.mav.mission_ack_send(rx["src"], rx["comp"], mav.MAV_MISSION_OPERATION_CANCELLED,
-                                            mav.MAV_MISSION_TYPE_FENCE)
-            return
-        rx["t"], rx["tries"] = now, rx["tries"] + 1
-        self._conn.mav.mission_request_int_send(rx["src"], rx["comp"], len(rx["items"]), mav.MAV_MISSION_TYPE_FENCE)
-
-    def _accept_fence(self, items: list[Any]) -> int:
-        mav = self._mav
-        poly: list[tuple[float, float]] = []
-        circles: list[tuple[float, float, float]] = []
-        z_max = math.inf
-        for it in items:
-            if it.frame != mav.MAV_FRAME_LOCAL_NED:
-                return mav.MAV_MISSION_UNSUPPORTED_FRAME
-            x, y, _ = ned_to_enu(it.x / LOCAL_XY_SCALE, it.y / LOCAL_XY_SCALE, 0.0)
-            if it.command == mav.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION:
-                poly.append((x, y))
-                if it.z < 0:
-                    z_max = min(z_max, -it.z)
-            elif it.command == mav.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION:
-                if not it.param1 > 0:
-                    return mav.MAV_MISSION_INVALID_PARAM1
-                circles.append((x, y, float(it.param1)))
-            else:
-                return mav.MAV_MISSION_UNSUPPORTED
-        counts = {int(it.param1) for it in items if it.command == mav.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION}
-        if poly and (len(poly) < 3 or counts != {len(poly)}):
-            return mav.MAV_MISSION_INVALID_PARAM1
-        self.fence = VehicleFence(np.array(poly, dtype=float).reshape(-1, 2), tuple(circles), z_max)
-        logger.info("vehicle %d: fence with %d corners, %d exclusion circles, ceiling %.2f m",
-                    self.config.system_id, len(poly), len(circles), z_max)
-        return mav.MAV_MISSION_ACCEPTED
+    def _param(self, kind: str, msg: Any) -> None:
+        name = msg.param_id.decode() if isinstance(msg.param_id, bytes) else str(msg.param_id)
+        name = name.rstrip("\x00")
+        if name not in self.params:
+            return  # both firmwares ignore a parameter they do not have: the sender's wait times out
+        if kind == "PARAM_SET" and math.isfinite(msg.param_value):
+            self.params[name] = float(msg.param_value)
+            logger.info("vehicle %d: %s = %g", self.config.system_id, name, msg.param_value)
+        index = list(self.params).index(name)
+        self._conn.mav.param_value_send(name.encode(), self.params[name], self._mav.MAV_PARAM_TYPE_REAL32,
+                                        len(self.params), index)
