@@ -110,7 +110,8 @@ def test_cflib_connects_reads_tocs_and_params(sims, tmp_path):
             cf.param.set_value("deck.bcLoco", 0)
         data = _first_log(scf, ["pm.vbat", "stateEstimate.z"])
         assert 3.9 < data["pm.vbat"] <= 4.2 and abs(data["stateEstimate.z"]) < 0.2
-        assert cf.supervisor.read_state_list() == ["Is armed", "Is auto armed", "Can fly", "HL control is disabled"]
+        assert cf.supervisor.read_state_list() == ["Is armed", "Is auto armed", "Can fly",
+                                                   "Finished HL trajectory"]  # planner idle, no trajectory yet
     finally:
         scf.close_link()
     # The TOCs were cached by CRC: a second connection reads them from the cache.
@@ -122,13 +123,24 @@ def test_cflib_connects_reads_tocs_and_params(sims, tmp_path):
 def test_reset_estimation_param_write_restarts_the_estimator(sims):
     with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
         scf.wait_for_params()
-        before = _first_log(scf, ["kalman.varPX"])["kalman.varPX"]
-        scf.cf.param.set_value("kalman.resetEstimation", "1")
-        assert _wait(lambda: scf.cf.param.get_value("kalman.resetEstimation") == "1", 1.0)  # echoed write
-        after = _first_log(scf, ["kalman.varPX"])["kalman.varPX"]
-        assert before < 0.01 and after > 0.1
-        time.sleep(1.5)
-        assert _first_log(scf, ["kalman.varPX"])["kalman.varPX"] < 0.002
+        config = LogConfig("var", 10)
+        config.add_variable("kalman.varPX", "float")
+        with SyncLogger(scf, config) as logger:
+            before = next(iter(logger))[1]["kalman.varPX"]
+            scf.cf.param.set_value("kalman.resetEstimation", "1")
+            # the reset sets the variance to MAX_COVARIANCE; the next measurements pull it down within
+            # tens of milliseconds, so the samples right after it are well above the converged value
+            peak = 0.0
+            for _, data, _ in logger:
+                peak = max(peak, data["kalman.varPX"])
+                if scf.cf.param.get_value("kalman.resetEstimation") == "1":  # echoed write
+                    break
+            for k, (_, data, _) in enumerate(logger):
+                peak = max(peak, data["kalman.varPX"])
+                if k >= 5:
+                    break
+        assert before < 0.002 and peak > 0.005
+        assert _wait(lambda: _first_log(scf, ["kalman.varPX"])["kalman.varPX"] < 0.002, 3.0)
         assert sims.param(0, "kalman.resetEstimation") == 0  # the estimator cleared its flag
 
 
@@ -148,7 +160,8 @@ def test_high_level_commander_takes_off_goes_to_and_lands(sims):
         assert np.allclose(sims.truth(0).position, (1.0, 0.5, 0.8), atol=0.05)
         assert sims.truth(0).supervisor == "flying"
         hl.land(0.0, 1.2)
-        assert _wait(lambda: sims.truth(0).supervisor == "ready", 3.0)
+        # the landing ends with the planner idle (motors off); "landed" once idle for 2 s (supervisor.c)
+        assert _wait(lambda: sims.truth(0).supervisor == "landed", 6.0)
         truth = sims.truth(0)
         assert truth.position[2] == 0.0 and not truth.motors_on
 
@@ -179,28 +192,66 @@ def test_streamed_setpoints_then_the_watchdog_levels_out_and_locks(sims):
     assert sims.truth(0).supervisor == "ready"
 
 
+def test_after_the_watchdog_a_levelled_drone_coasts_on_its_momentum(sims):
+    """supervisorOverrideSetpoint: x and y control off in level-out, so the drone keeps its velocity (only
+    drag slows it); z keeps the setpoint's mode (here a velocity of 0)."""
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        commander = scf.cf.commander
+        x0, y0, _ = sims.truth(0).position
+        _stream(lambda: commander.send_position_setpoint(x0, y0, 0.6, 0.0), 1.2)
+        _stream(lambda: commander.send_velocity_world_setpoint(0.5, 0.0, 0.0, 0.0), 0.6)
+        t_last, x_last = time.monotonic(), sims.truth(0).position[0]
+        assert _wait(lambda: sims.truth(0).supervisor == "level_out", 1.0)
+        assert _wait(lambda: time.monotonic() - t_last > 1.2, 2.0)
+        truth = sims.truth(0)
+        assert truth.supervisor == "level_out"  # (unless the machine stalled past 2 s: then it is locked)
+        assert 0.3 < truth.velocity[0] < 0.5  # coasting: slowed by drag alone, no brake
+        assert truth.position[0] - x_last > 0.4
+        assert truth.position[2] == pytest.approx(0.6, abs=0.1)
+        assert _wait(lambda: sims.is_locked(0), 2.0)  # motors off at 2 s
+
+
 def test_notify_setpoint_stop_hands_over_to_the_high_level_commander(sims):
     with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
         commander, hl = scf.cf.commander, scf.cf.high_level_commander
         x0, y0, _ = sims.truth(0).position
         _stream(lambda: commander.send_position_setpoint(x0, y0, 0.5, 0.0), 1.0)
-        hl.go_to(x0, y0, 0.9, 0.0, 1.0)  # refused: the streamed setpoint has priority
-        _stream(lambda: commander.send_position_setpoint(x0, y0, 0.5, 0.0), 0.3)
+        hl.go_to(x0, y0, 0.9, 0.0, 1.0)  # planned, but the streamed setpoint outranks the planner ...
+        _stream(lambda: commander.send_position_setpoint(x0, y0, 0.5, 0.0), 0.3)  # ... and stops it
         assert sims.truth(0).position[2] == pytest.approx(0.5, abs=0.05)
-        commander.send_notify_setpoint_stop(100)
         hl.land(0.0, 1.0)
-        assert _wait(lambda: sims.truth(0).supervisor == "ready", 3.5)
+        commander.send_notify_setpoint_stop(100)  # relax: the planner's landing is taken
+        assert _wait(lambda: sims.truth(0).supervisor == "landed", 5.0)
         assert not sims.is_locked(0)
 
 
-def test_stop_setpoint_cuts_the_motors_without_locking(sims):
+def test_a_land_without_the_hand_over_is_dropped_and_the_watchdog_locks(sims):
+    with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
+        commander, hl = scf.cf.commander, scf.cf.high_level_commander
+        x0, y0, _ = sims.truth(0).position
+        _stream(lambda: commander.send_position_setpoint(x0, y0, 0.5, 0.0), 1.0)
+        t_last = time.monotonic()
+        hl.land(0.0, 1.0)  # no notify-setpoint-stop: the streamed setpoint keeps priority and ages
+        assert _wait(lambda: sims.truth(0).supervisor == "level_out", 1.0)
+        assert sims.truth(0).position[2] == pytest.approx(0.5, abs=0.05)
+        assert _wait(lambda: sims.is_locked(0), 3.0)
+        assert time.monotonic() - t_last > 1.9
+
+
+def test_stop_setpoint_cuts_the_motors_and_the_hand_over_avoids_the_lock(sims):
     with SyncCrazyflie(sims.uris[0], cf=Crazyflie()) as scf:
         scf.cf.high_level_commander.takeoff(0.3, 0.7)
-        time.sleep(0.8)
-        assert sims.truth(0).position[2] > 0.25
+        assert _wait(lambda: sims.truth(0).position[2] > 0.25, 2.0)
+        # as cflib's examples do: the stop setpoint, then the hand-over so that the watchdog does not lock
         scf.cf.commander.send_stop_setpoint()
+        scf.cf.commander.send_notify_setpoint_stop()
         assert _wait(lambda: sims.truth(0).position[2] == 0.0, 1.0)
-        assert _wait(lambda: sims.truth(0).supervisor == "ready", 0.5)
+        assert _wait(lambda: sims.truth(0).supervisor == "landed", 3.0)
+        assert not sims.is_locked(0)
+        scf.cf.high_level_commander.takeoff(0.3, 0.7)
+        assert _wait(lambda: sims.truth(0).position[2] > 0.25, 2.0)
+        scf.cf.commander.send_stop_setpoint()  # without the hand-over the stop setpoint ages: locked at 2 s
+        assert _wait(lambda: sims.is_locked(0), 3.0)
 
 
 def test_emergency_stops_lock_the_drone(sims):
@@ -278,7 +329,7 @@ def test_cflib_swarm_of_three_takes_off_and_lands(sims, tmp_path):
         time.sleep(1.0)
         assert all(sims.truth(i).position[2] == pytest.approx(0.3, abs=0.03) for i in range(3))
         swarm.parallel_safe(land)
-        assert _wait(lambda: all(sims.truth(i).supervisor == "ready" for i in range(3)), 1.8)
+        assert _wait(lambda: all(sims.truth(i).supervisor == "landed" for i in range(3)), 5.0)
         assert all(sims.truth(i).position[2] == 0.0 for i in range(3))
 
 
@@ -337,11 +388,39 @@ def test_flight_model_limits_speed_and_rests_on_the_ground():
 def test_firmware_watchdog_timeline_without_sockets():
     fw = Firmware(QuadParams(), now=0.0)
     pos, vel = np.array([0.0, 0.0, 0.5]), np.zeros(3)
-    fw.setpoint(0.0, Mode.POSITION, (0.0, 0.0, 0.5, 0.0))
+    fw.control(0.0, pos, vel, 0.0)
+    assert fw.state is SupervisorState.READY and not fw.motors_on  # the idle planner's null setpoint
+    fw.stream(0.0, Mode.VELOCITY, (0.3, 0.0, 0.1, 0.0))
+    assert fw.control(0.01, pos, vel, 0.0)[2:] == (True, False)
     fw.control(0.49, pos, vel, 0.0)
     assert fw.state is SupervisorState.FLYING
-    fw.control(0.51, pos, vel, 0.0)
-    assert fw.state is SupervisorState.LEVEL_OUT and fw.motors_on
+    v, _, on, coasting = fw.control(0.51, pos, vel, 0.0)
+    assert fw.state is SupervisorState.LEVEL_OUT and on and coasting
+    assert v[2] == pytest.approx(0.1)  # z keeps the setpoint's mode: a vertical velocity goes on
     fw.control(2.01, pos, vel, 0.0)
     assert fw.state is SupervisorState.LOCKED and not fw.motors_on
     assert fw.arm(True) == (False, False)
+
+
+def test_firmware_emergency_stop_watchdog_and_landed_timeline():
+    fw = Firmware(QuadParams(), now=0.0)
+    pos, vel = np.array([0.0, 0.0, 0.0]), np.zeros(3)
+    fw.emergency_stop_watchdog(0.0)
+    assert fw.hl_takeoff(0.0, 0, pos, 0.0, 0.5, 1.0, None)
+    fw.control(0.01, pos, vel, 0.0)
+    fw.control(0.02, pos, vel, 0.0)
+    assert fw.state is SupervisorState.FLYING and fw.motors_on
+    assert not fw.hl_takeoff(0.03, 0, pos, 0.0, 0.5, 1.0, None)  # plan_takeoff: only from idle
+    fw.emergency_stop_watchdog(0.9)
+    fw.control(1.5, pos, vel, 0.0)
+    assert fw.state is SupervisorState.FLYING  # fed in time
+    assert fw.hl_land(1.5, 0, pos, 0.0, 0.0, 0.5, None)
+    fw.emergency_stop_watchdog(1.8)
+    fw.control(2.0, pos, vel, 0.0)
+    fw.control(2.0 + 0.01, pos, vel, 0.0)  # the landing has ended: the planner is idle, motors off
+    assert not fw.motors_on and fw.state is SupervisorState.FLYING  # "flying" until idle for 2 s
+    fw.emergency_stop_watchdog(3.5)
+    fw.control(4.05, pos, vel, 0.0)
+    assert fw.state is SupervisorState.LANDED  # the watchdog is not judged while landed ...
+    fw.control(7.1, pos, vel, 0.0)
+    assert fw.state is SupervisorState.LOCKED  # ... but the reset after the landing timeout locks

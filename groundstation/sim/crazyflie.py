@@ -16,7 +16,7 @@ Implemented services (port: what):
 * legacy commander (3): roll/pitch/yawrate/thrust, where thrust 0 (what cflib sends on close) is a stop;
 * high-level commander (8): group mask, takeoff, land (v1 and v2), go_to (v1 and v2), stop;
 * localization (6): external position (ch 0); emergency stop and its watchdog (ch 1);
-* supervisor (9): state bitfield and single bits (ch 0), arm, crash recovery, emergency stop (ch 1).
+* supervisor (9): state bitfield (ch 0), arm, crash recovery, emergency stop and its watchdog (ch 1).
 """
 from __future__ import annotations
 
@@ -124,7 +124,7 @@ class SimCrazyflie:
         i, fw, m = self.index, self.firmware, self.model
         pos = m.estimated_position(i, fw.extpos_fresh(now), fw.extpos, fw.extpos_age(now))
         vel = m.estimated_velocity(i)
-        var = fw.position_variance(now)
+        var = m.position_variance(i)
         info = fw.supervisor_info()
         vbat = m.battery_voltage(i, fw.motors_on)
         return {"x": pos[0], "y": pos[1], "z": pos[2], "vx": vel[0], "vy": vel[1], "vz": vel[2],
@@ -301,7 +301,6 @@ class SimCrazyflie:
     def _set_param(self, full_name: str, value: float, now: float) -> None:
         self.params[full_name] = value
         if full_name == "kalman.resetEstimation" and value:
-            self.firmware.reset_estimation(now)
             self.model.reset_estimate_error(self.index)
             self.params[full_name] = 0  # the estimator clears the flag once it has reset
         elif full_name == "stabilizer.stop" and value:
@@ -318,33 +317,33 @@ class SimCrazyflie:
         fw = self.firmware
         if channel == 1:  # meta commands
             if data and data[0] == 0:
-                (remain_ms,) = struct.unpack_from("<I", data, 1)
-                fw.notify_setpoint_stop(now, remain_ms / 1000.0)
+                struct.unpack_from("<I", data, 1)  # remain-valid [ms]: ignored by current firmware
+                fw.notify_setpoint_stop(now)
             return []
         if channel != 0 or not data:
             return []
         kind = data[0]
         if kind == 0:
-            fw.setpoint_stop(now)
+            fw.stream_stop(now)
         elif kind == 7:
-            fw.setpoint(now, Mode.POSITION, struct.unpack_from("<ffff", data, 1))
+            fw.stream(now, Mode.POSITION, struct.unpack_from("<ffff", data, 1))
         elif kind == 8:
             target = struct.unpack_from("<ffff", data, 1)
             self._probe_latency(target[3], now)
-            fw.setpoint(now, Mode.VELOCITY, target)
+            fw.stream(now, Mode.VELOCITY, target)
         elif kind == 10:
-            fw.setpoint(now, Mode.HOVER, struct.unpack_from("<ffff", data, 1))
+            fw.stream(now, Mode.HOVER, struct.unpack_from("<ffff", data, 1))
         elif kind == 9:  # z-distance: roll, pitch, yawrate, z -> hold position horizontally
             _, _, yaw_rate, z = struct.unpack_from("<ffff", data, 1)
-            fw.setpoint(now, Mode.HOVER, (0.0, 0.0, yaw_rate, z))
+            fw.stream(now, Mode.HOVER, (0.0, 0.0, yaw_rate, z))
         else:
             logger.warning("drone %d: generic setpoint type %d is not simulated", self.index, kind)
         return []
 
     def _commander_rpyt(self, channel: int, data: bytes, now: float) -> list[bytes]:
         _, _, _, thrust = struct.unpack("<fffH", data[:14])
-        if thrust == 0:
-            self.firmware.setpoint_stop(now)
+        if thrust == 0:  # crtp_commander_rpyt.c: zero thrust, taken at CRTP priority (motors off)
+            self.firmware.stream_stop(now)
         else:
             logger.warning("drone %d: attitude/thrust setpoints are not simulated", self.index)
         return []
@@ -455,7 +454,7 @@ class SimCrazyflie:
         self.blocks.clear()
         self.params = {v.full_name: v.default for v in PARAM_TOC}
 
-    def control(self, now: float) -> tuple[np.ndarray, float, bool]:
+    def control(self, now: float) -> tuple[np.ndarray, float, bool, bool]:
         i, m = self.index, self.model
         return self.firmware.control(now, m.pos[i], m.vel[i], float(m.yaw_deg[i]))
 

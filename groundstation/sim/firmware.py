@@ -1,16 +1,24 @@
-"""What the Crazyflie firmware does with the commands it receives: commander priorities, the setpoint
-watchdog, the high-level commander's planner, the supervisor's states, the emergency stops, the estimator
-reset. One ``Firmware`` per simulated drone; no sockets, no clocks (every call takes ``now`` [s]).
+"""What the Crazyflie firmware does with the commands it receives: the commander's one setpoint and its
+priority, the high-level commander's planner, the supervisor's state machine with its watchdogs, the
+emergency stops. One ``Firmware`` per simulated drone; no sockets, no clocks (every call takes ``now`` [s]).
 
-Safety behaviour, as in crazyflie-firmware (``supervisor.c``, ``commander.c``):
+Followed from bitcraze/crazyflie-firmware (``src/modules/src/``):
 
-* a streamed (low-level) setpoint older than 0.5 s while flying: level out and hold the height;
-* older than 2 s: motors off, supervisor locked; only a reboot clears it;
-* ``notify_setpoint_stop(remain_valid_ms)`` ages the last streamed setpoint so that it stays valid for
-  ``remain_valid_ms`` and lets the high-level commander take over;
-* the high-level commander generates its own setpoints on board, so it is not subject to the watchdog and
-  holds its last target when its trajectory ends;
-* emergency stop (and its watchdog, 1 s): motors off, locked.
+* ``commander.c``: one setpoint slot with a priority (disable 0 < high level 1 < CRTP 2). A setpoint is taken
+  when its priority is at least the current one and gets a fresh timestamp; a streamed (CRTP) setpoint stops
+  the high-level planner. ``commanderRelaxPriority`` (the notify-setpoint-stop meta command,
+  ``crtp_commander_generic.c``, whose remain-valid argument current firmware ignores) drops the priority to
+  the lowest so that the planner's next setpoint is taken.
+* ``crtp_commander_high_level.c`` / ``planner.c`` / ``stabilizer.c``: every control step, while the
+  supervisor allows flight, the planner offers a setpoint at high-level priority: its trajectory while flying
+  or landing, the *null setpoint* (motors off) while idle. Takeoff is refused unless the planner is idle, land
+  while it is already landing; a finished landing makes it idle (so the motors stop). While flight is not
+  allowed the planner is blocked (stopped, commands refused).
+* ``supervisor.c`` / ``supervisor_state_machine.c``: ready -> flying once the motors run; flying -> warning
+  level-out when the setpoint is older than 0.5 s (x, y control off, roll and pitch level, z as the setpoint
+  had it: the drone coasts), back when a fresh one arrives; flying or level-out -> locked when it is older
+  than 2 s or on an emergency stop (including the emergency-stop watchdog, 1 s); flying -> landed 2 s after
+  the motors went idle; landed -> reset (and back to ready, or locked on a pending emergency stop) after 3 s.
 """
 from __future__ import annotations
 
@@ -21,22 +29,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from groundstation.cf_firmware import (ESTOP_WATCHDOG_S, IS_FLYING_HYSTERESIS_S, LANDING_TIMEOUT_S, WDT_SHUTDOWN_S,
+                                       WDT_WARNING_S)
 from groundstation.sim.flight_model import QuadParams, Segment
 
 logger = logging.getLogger(__name__)
 
-WDT_WARNING_S = 0.5
-"""COMMANDER_WDT_TIMEOUT_STABILIZE [s]."""
-WDT_SHUTDOWN_S = 2.0
-"""COMMANDER_WDT_TIMEOUT_SHUTDOWN [s]."""
-ESTOP_WATCHDOG_S = 1.0
-"""DEFAULT_EMERGENCY_STOP_WATCHDOG_TIMEOUT [s]."""
 EXTPOS_FRESH_S = 0.5
 """External positions younger than this dominate the position estimate [s]."""
-KALMAN_CONVERGE_S = 0.2
-"""Time constant of the position variance after an estimator reset [s]."""
-LANDED_HEIGHT_M = 0.05
-"""A landing that ends at or below this height above the floor turns the motors off [m]."""
+
+PRIORITY_DISABLE, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 2
+"""COMMANDER_PRIORITY_* (``src/modules/interface/commander.h``)."""
 
 
 class SupervisorState(enum.Enum):
@@ -44,31 +47,45 @@ class SupervisorState(enum.Enum):
     READY = "ready"
     FLYING = "flying"
     LEVEL_OUT = "level_out"
+    LANDED = "landed"
     LOCKED = "locked"
 
 
 class Mode(enum.Enum):
-    IDLE = "idle"
+    NULL = "null"
+    """The null setpoint: every mode disabled, thrust zero (motors off)."""
     POSITION = "position"
     VELOCITY = "velocity"
     HOVER = "hover"
-    HIGH_LEVEL = "high_level"
+    TRAJECTORY = "trajectory"
+    """A high-level-commander setpoint (position, velocity and acceleration of the planned trajectory)."""
 
 
-# supervisor.info bits (crazyflie-firmware supervisor.c, cflib supervisor.py)
+class Planner(enum.Enum):
+    IDLE = "idle"
+    FLYING = "flying"
+    LANDING = "landing"
+
+
+# supervisor.info bits (crazyflie-firmware supervisor.c updateLogData, cflib supervisor.py)
 BIT_CAN_BE_ARMED, BIT_IS_ARMED, BIT_AUTO_ARMED, BIT_CAN_FLY, BIT_IS_FLYING = 0, 1, 2, 3, 4
 BIT_IS_LOCKED, BIT_HL_ACTIVE, BIT_HL_FINISHED, BIT_HL_DISABLED = 6, 8, 9, 10
 
+_CAN_FLY = (SupervisorState.READY, SupervisorState.FLYING, SupervisorState.LEVEL_OUT, SupervisorState.LANDED)
+"""supervisorCanFly / supervisorAreMotorsAllowedToRun (arming is instantaneous here)."""
+
 
 @dataclass
-class _Streamed:
+class Setpoint:
     mode: Mode
-    target: tuple[float, float, float, float]
-    """Mode-specific: (x, y, z, yaw_deg), (vx, vy, vz, yaw_rate_deg) or (vx_body, vy_body, yaw_rate_deg, z)."""
-    stamp: float
-    """Time the setpoint counts as received (moved back by notify-setpoint-stop) [s]."""
-    relaxed: bool = False
-    """After notify-setpoint-stop: the high-level commander may take over."""
+    target: tuple[float, ...] = ()
+    """POSITION (x, y, z, yaw_deg); VELOCITY (vx, vy, vz, yaw_rate_deg); HOVER (vx_body, vy_body,
+    yaw_rate_deg, z); TRAJECTORY (x, y, z, vx, vy, vz, ax, ay, az, yaw_deg)."""
+    stamp: float = -math.inf
+    """When the commander took it [s]."""
+
+
+NULL = Setpoint(Mode.NULL)
 
 
 class Firmware:
@@ -77,129 +94,134 @@ class Firmware:
     def __init__(self, params: QuadParams, now: float) -> None:
         self.params = params
         self.state = SupervisorState.READY  # auto-arming, as on a stock Crazyflie 2.x
-        self.mode = Mode.IDLE
         self.group_mask = 0
-        self._streamed: _Streamed | None = None
+        self.setpoint = Setpoint(Mode.NULL, (), now)  # commanderInit: the null setpoint
+        self.priority = PRIORITY_DISABLE
+        self.planner = Planner.IDLE  # plan_init
         self._segment: Segment | None = None
         self._segment_yaw = (0.0, 0.0)
-        self._landing = False
-        self._hold_z = 0.0
-        self._estop_deadline: float | None = None
+        self._estop_requested = False
+        self._estop_notified: float | None = None
+        self._thrust_t = -math.inf
+        self._landed_t = -math.inf
         self._extpos_time = -math.inf
         self.extpos = np.zeros(3)
-        self._reset_time = now - 10.0 * KALMAN_CONVERGE_S  # converged at boot
+        self._last_now = now
 
-    # ---- streamed (generic commander) setpoints -------------------------------------------------
+    # ---- the commander (commander.c) -----------------------------------------------------------------
 
-    def setpoint(self, now: float, mode: Mode, target: tuple[float, float, float, float]) -> None:
-        if self.state in (SupervisorState.LOCKED, SupervisorState.DISARMED):
+    def _commander_set(self, now: float, sp: Setpoint, priority: int) -> None:
+        if priority < self.priority:
             return
-        self._streamed = _Streamed(mode, target, now)
-        self.mode = mode
-        self._segment = None
-        if self.state in (SupervisorState.READY, SupervisorState.LEVEL_OUT):
-            self.state = SupervisorState.FLYING
+        sp.stamp = now
+        self.setpoint, self.priority = sp, priority
+        if priority > PRIORITY_HIGHLEVEL:
+            self._planner_stop()  # "Stop the high-level planner so it will forget its current state"
 
-    def setpoint_stop(self, now: float) -> None:
-        """Null setpoint: motors off, the drone drops."""
-        self._streamed = None
-        self._segment = None
-        self.mode = Mode.IDLE
+    def stream(self, now: float, mode: Mode, target: tuple[float, ...]) -> None:
+        """A streamed setpoint (generic or legacy commander port, CRTP priority)."""
+        self._commander_set(now, Setpoint(mode, tuple(target)), PRIORITY_CRTP)
 
-    def notify_setpoint_stop(self, now: float, remain_valid_s: float) -> None:
-        if self._streamed is None:
-            return
-        setback = min(WDT_SHUTDOWN_S - remain_valid_s, now)
-        self._streamed.stamp = now - max(setback, 0.0)
-        self._streamed.relaxed = True
+    def stream_stop(self, now: float) -> None:
+        """The stop setpoint (type 0) or a zero-thrust legacy setpoint: the null setpoint at CRTP priority."""
+        self._commander_set(now, Setpoint(Mode.NULL), PRIORITY_CRTP)
 
-    # ---- high-level commander ---------------------------------------------------------------------
+    def notify_setpoint_stop(self, now: float) -> None:
+        """commanderRelaxPriority: any setpoint, the planner's included, may now replace the current one."""
+        self.priority = PRIORITY_HIGHLEVEL
+
+    # ---- the high-level commander (crtp_commander_high_level.c, planner.c) ----------------------------
 
     def _in_group(self, group_mask: int) -> bool:
         return group_mask == 0 or (group_mask & self.group_mask) != 0
 
-    def _hl_may_take_over(self, now: float) -> bool:
-        s = self._streamed
-        if self.mode in (Mode.IDLE, Mode.HIGH_LEVEL) or s is None:
-            return True
-        return s.relaxed or now - s.stamp > WDT_WARNING_S
+    @property
+    def _blocked(self) -> bool:
+        return self.state not in _CAN_FLY  # crtpCommanderBlock(!supervisorCanFly())
+
+    def _planner_stop(self) -> None:
+        self.planner = Planner.IDLE  # plan_stop keeps the trajectory (its "finished" bit stays meaningful)
+
+    def _reference(self, now: float, pos: np.ndarray) -> np.ndarray:
+        """Where the planner plans from: its own trajectory when on one, else the state estimate."""
+        if self.planner is not Planner.IDLE and self._segment is not None:
+            return self._segment.sample(now)[0]
+        return np.asarray(pos, dtype=float)
+
+    def _plan(self, now, start, end, duration, yaw0, yaw1, linear=False) -> None:
+        self._segment = Segment(now, max(float(duration), 0.0), tuple(float(s) for s in start),
+                                tuple(float(e) for e in end), linear)
+        self._segment_yaw = (yaw0, yaw1)
 
     def hl_takeoff(self, now: float, group_mask: int, pos: np.ndarray, yaw_deg: float, height: float,
-                   duration: float, target_yaw_deg: float | None) -> None:
-        if not self._in_group(group_mask):
-            return
-        if self.state not in (SupervisorState.READY, SupervisorState.FLYING, SupervisorState.LEVEL_OUT):
-            logger.info("takeoff refused in supervisor state %s", self.state.value)
-            return
-        if self.mode is Mode.HIGH_LEVEL and not self._landing:
-            logger.info("takeoff refused: the high-level commander is already flying")
-            return
-        if not self._hl_may_take_over(now):
-            logger.info("takeoff refused: a streamed setpoint has priority (send notify_setpoint_stop)")
-            return
-        end = (float(pos[0]), float(pos[1]), float(height))
-        self._plan(now, pos, end, duration, yaw_deg, yaw_deg if target_yaw_deg is None else target_yaw_deg)
-        self._landing = False
-        self.state = SupervisorState.FLYING
+                   duration: float, target_yaw_deg: float | None) -> bool:
+        if self._blocked or not self._in_group(group_mask):
+            return False
+        if self.planner is not Planner.IDLE:  # plan_takeoff: only from idle
+            logger.info("takeoff refused: the planner is %s", self.planner.value)
+            return False
+        start = self._reference(now, pos)
+        self._plan(now, start, (start[0], start[1], float(height)), duration, yaw_deg,
+                   yaw_deg if target_yaw_deg is None else target_yaw_deg)
+        self.planner = Planner.FLYING
+        return True
 
     def hl_land(self, now: float, group_mask: int, pos: np.ndarray, yaw_deg: float, height: float,
-                duration: float, target_yaw_deg: float | None) -> None:
-        if not self._in_group(group_mask) or self.state not in (SupervisorState.FLYING,
-                                                                 SupervisorState.LEVEL_OUT):
-            return
-        if not self._hl_may_take_over(now):
-            logger.info("land refused: a streamed setpoint has priority (send notify_setpoint_stop)")
-            return
-        end = (float(pos[0]), float(pos[1]), float(height))
-        self._plan(now, pos, end, duration, yaw_deg, yaw_deg if target_yaw_deg is None else target_yaw_deg)
-        self._landing = True
-        self.state = SupervisorState.FLYING
+                duration: float, target_yaw_deg: float | None) -> bool:
+        if self._blocked or not self._in_group(group_mask):
+            return False
+        if self.planner is Planner.LANDING:  # plan_land: not twice
+            return False
+        start = self._reference(now, pos)
+        self._plan(now, start, (start[0], start[1], float(height)), duration, yaw_deg,
+                   yaw_deg if target_yaw_deg is None else target_yaw_deg)
+        self.planner = Planner.LANDING
+        return True
 
     def hl_go_to(self, now: float, group_mask: int, pos: np.ndarray, yaw_deg: float,
                  goal: tuple[float, float, float], goal_yaw_deg: float, duration: float, relative: bool,
-                 linear: bool) -> None:
-        if not self._in_group(group_mask) or self.state not in (SupervisorState.FLYING,
-                                                                 SupervisorState.LEVEL_OUT):
-            return
-        if not self._hl_may_take_over(now):
-            logger.info("go_to refused: a streamed setpoint has priority (send notify_setpoint_stop)")
-            return
-        start = self._hl_reference(now, pos)
+                 linear: bool) -> bool:
+        if self._blocked or not self._in_group(group_mask):
+            return False
+        start = self._reference(now, pos)
         end = tuple(float(g) for g in goal)
         if relative:
             end = (start[0] + end[0], start[1] + end[1], start[2] + end[2])
             goal_yaw_deg += yaw_deg
         self._plan(now, start, end, duration, yaw_deg, goal_yaw_deg, linear)
-        self._landing = False
-        self.state = SupervisorState.FLYING
+        self.planner = Planner.FLYING
+        return True
 
     def hl_stop(self, now: float, group_mask: int) -> None:
-        if self._in_group(group_mask) and self.mode is Mode.HIGH_LEVEL:
-            self._segment = None
-            self.mode = Mode.IDLE
+        if self._in_group(group_mask):
+            self._planner_stop()  # idle: the planner now offers the null setpoint
 
-    def _hl_reference(self, now: float, pos: np.ndarray) -> np.ndarray:
-        """Plan from the current reference when already on a trajectory (as the firmware planner does)."""
-        if self.mode is Mode.HIGH_LEVEL and self._segment is not None:
-            return self._segment.sample(now)[0]
-        return np.asarray(pos, dtype=float)
+    def _planner_setpoint(self, now: float) -> Setpoint:
+        """crtpCommanderHighLevelGetSetpoint: the trajectory, or the null setpoint while idle."""
+        seg = self._segment
+        if self.planner is Planner.IDLE or seg is None:
+            return Setpoint(Mode.NULL)
+        if self.planner is Planner.LANDING and seg.finished(now):
+            self._planner_stop()  # plan_current_goal: a finished landing goes idle (this step still flies it)
+        p, v = seg.sample(now)
+        a = seg.acceleration(now)
+        yaw0, yaw1 = self._segment_yaw
+        frac = 1.0 if seg.duration <= 0 else min(max((now - seg.t0) / seg.duration, 0.0), 1.0)
+        return Setpoint(Mode.TRAJECTORY, (*p, *v, *a, yaw0 + _wrap_deg(yaw1 - yaw0) * frac))
 
-    def _plan(self, now, start, end, duration, yaw0, yaw1, linear=False) -> None:
-        start = tuple(float(s) for s in start)
-        self._segment = Segment(now, max(float(duration), 0.0), start, tuple(end), linear)
-        self._segment_yaw = (yaw0, yaw1)
-        self._streamed = None
-        self.mode = Mode.HIGH_LEVEL
-
-    # ---- supervisor, localization, estimator ------------------------------------------------------
+    # ---- supervisor, localization ---------------------------------------------------------------------
 
     def emergency_stop(self, now: float) -> None:
-        if self.state is not SupervisorState.LOCKED:
-            logger.info("emergency stop: motors off, locked (reboot required)")
-        self._lock()
+        """crtpSupervisorSetEmergencyStop (or the stabilizer.stop parameter): locks at the next step."""
+        self._estop_requested = True
 
     def emergency_stop_watchdog(self, now: float) -> None:
-        self._estop_deadline = now + ESTOP_WATCHDOG_S
+        """crtpSupervisorNotifyEmergencyStopWatchdog: arms the watchdog (until reboot) and feeds it."""
+        self._estop_notified = now
+
+    def crash(self, now: float, why: str) -> None:
+        """A collision: the simulator cuts the motors and locks (the drone is broken until rebooted)."""
+        self._lock(why)
 
     def arm(self, do_arm: bool) -> tuple[bool, bool]:
         """Supervisor arming request; returns (success, is_armed)."""
@@ -207,9 +229,9 @@ class Firmware:
             return (not do_arm), False
         if do_arm and self.state is SupervisorState.DISARMED:
             self.state = SupervisorState.READY
-        elif not do_arm and self.state is SupervisorState.READY:
+        elif not do_arm and self.state in (SupervisorState.READY, SupervisorState.LANDED):
             self.state = SupervisorState.DISARMED
-        elif not do_arm:
+        elif not do_arm and self.state is not SupervisorState.DISARMED:
             return False, True  # cannot disarm in flight
         return True, self.armed
 
@@ -224,29 +246,25 @@ class Firmware:
         """Seconds since the latest external position [s]."""
         return now - self._extpos_time
 
-    def reset_estimation(self, now: float) -> None:
-        self._reset_time = now
-
-    def position_variance(self, now: float) -> tuple[float, float, float]:
-        """kalman.varPX/PY/PZ [m^2]: 1 m^2 after a reset, converging to the positioning noise."""
-        p = self.params
-        decay = math.exp(-(now - self._reset_time) / KALMAN_CONVERGE_S)
-        ss = (p.lps_sigma_xy**2, p.lps_sigma_xy**2, p.lps_sigma_z**2)
-        return tuple(s + (1.0 - s) * decay for s in ss)
-
-    def _lock(self) -> None:
+    def _lock(self, why: str) -> None:
+        if self.state is not SupervisorState.LOCKED:
+            logger.info("%s: motors off, locked (reboot required)", why)
         self.state = SupervisorState.LOCKED
-        self.mode = Mode.IDLE
-        self._streamed = None
-        self._segment = None
+        self._planner_stop()
 
     @property
     def armed(self) -> bool:
-        return self.state in (SupervisorState.READY, SupervisorState.FLYING, SupervisorState.LEVEL_OUT)
+        return self.state in _CAN_FLY
 
     @property
     def motors_on(self) -> bool:
-        return self.state in (SupervisorState.FLYING, SupervisorState.LEVEL_OUT) and self.mode is not Mode.IDLE
+        return self._motors_on
+
+    _motors_on = False
+
+    @property
+    def setpoint_age(self) -> float:
+        return self._last_now - self.setpoint.stamp
 
     def supervisor_info(self) -> int:
         s = self.state
@@ -259,76 +277,84 @@ class Firmware:
             bits |= 1 << BIT_IS_FLYING
         if s is SupervisorState.LOCKED:
             bits |= 1 << BIT_IS_LOCKED
-        if self.mode is Mode.HIGH_LEVEL:
-            bits |= 1 << BIT_HL_ACTIVE
-            if self._segment is not None and self._segment.finished(self._last_now):
-                bits |= 1 << BIT_HL_FINISHED
-        else:
-            bits |= 1 << BIT_HL_DISABLED
+        if self.planner is not Planner.IDLE:
+            bits |= 1 << BIT_HL_ACTIVE  # TRAJECTORY_STATE_FLYING bit: flying or landing
+        if self._segment is None or self._segment.finished(self._last_now):
+            bits |= 1 << BIT_HL_FINISHED  # plan_is_finished: also with no trajectory yet
         return bits
 
-    _last_now = 0.0
-
-    # ---- the control step -------------------------------------------------------------------------
+    # ---- the control step (stabilizer.c) ---------------------------------------------------------------
 
     def control(self, now: float, pos: np.ndarray, vel: np.ndarray,
-                yaw_deg: float) -> tuple[np.ndarray, float, bool]:
-        """Desired velocity [m/s], yaw rate [deg/s] and motors-on for this instant; runs the watchdogs."""
+                yaw_deg: float) -> tuple[np.ndarray, float, bool, bool]:
+        """One stabilizer step: the planner offers its setpoint, the supervisor judges, overrides, and the
+        position controller runs. Returns desired velocity [m/s], yaw rate [deg/s], motors on, and whether
+        horizontal control is off (level-out: the drone coasts)."""
         self._last_now = now
-        if self._estop_deadline is not None and now > self._estop_deadline:
-            logger.info("emergency-stop watchdog expired")
-            self._estop_deadline = None
-            self._lock()
-        self._run_setpoint_watchdog(now, pos)
-        if self.state in (SupervisorState.FLYING, SupervisorState.LEVEL_OUT) and self.mode is Mode.IDLE:
-            if pos[2] <= self.params.ground_z + 1e-3 and abs(vel[2]) < 1e-3:
-                self.state = SupervisorState.READY  # motors were cut and the drone is down
-        if not self.motors_on:
-            return np.zeros(3), 0.0, False
-        kp = self.params.kp_pos
-        if self.state is SupervisorState.LEVEL_OUT:
-            return np.array([0.0, 0.0, kp * (self._hold_z - pos[2])]), 0.0, True
-        if self.mode is Mode.HIGH_LEVEL:
-            return self._control_high_level(now, pos, yaw_deg)
-        t = self._streamed.target
-        if self.mode is Mode.POSITION:
-            return kp * (np.array(t[:3]) - pos), kp * _wrap_deg(t[3] - yaw_deg), True
-        if self.mode is Mode.VELOCITY:
-            return np.array(t[:3]), t[3], True
-        # HOVER: body-frame horizontal velocity, absolute height
-        c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-        return np.array([c * t[0] - s * t[1], s * t[0] + c * t[1], kp * (t[3] - pos[2])]), t[2], True
+        if not self._blocked:
+            self._commander_set(now, self._planner_setpoint(now), PRIORITY_HIGHLEVEL)
+        else:
+            self._planner_stop()
+        self._supervise(now)
+        sp = self.setpoint if self.state in _CAN_FLY else NULL
+        self._motors_on = sp.mode is not Mode.NULL
+        if self._motors_on:
+            self._thrust_t = now
+        else:
+            return np.zeros(3), 0.0, False, False
+        level_out = self.state is SupervisorState.LEVEL_OUT
+        v, yaw_rate = self._track(sp, pos, yaw_deg)
+        if level_out:
+            return np.array([0.0, 0.0, v[2]]), 0.0, True, True  # roll, pitch level; yaw rate 0; z kept
+        return v, yaw_rate, True, False
 
-    def _run_setpoint_watchdog(self, now: float, pos: np.ndarray) -> None:
-        if self._streamed is None or self.mode is Mode.HIGH_LEVEL:
-            return
-        if self.state not in (SupervisorState.FLYING, SupervisorState.LEVEL_OUT):
-            return
-        age = now - self._streamed.stamp
-        if age > WDT_SHUTDOWN_S:
-            logger.info("setpoint watchdog: no setpoint for %.1f s, motors off, locked", age)
-            self._lock()
-        elif age > WDT_WARNING_S and self.state is SupervisorState.FLYING:
-            logger.info("setpoint watchdog: no setpoint for %.1f s, levelling out", age)
-            self.state = SupervisorState.LEVEL_OUT
-            self._hold_z = float(pos[2])
+    def _supervise(self, now: float) -> None:
+        """supervisorStateUpdate with this simulator's conditions (first matching transition wins)."""
+        age = now - self.setpoint.stamp
+        wdt_warning, wdt_timeout = age > WDT_WARNING_S, age > WDT_SHUTDOWN_S
+        estop = self._estop_requested or (self._estop_notified is not None
+                                          and now >= self._estop_notified + ESTOP_WATCHDOG_S)
+        flying = now - self._thrust_t < IS_FLYING_HYSTERESIS_S
+        s, S = self.state, SupervisorState
+        if s is S.READY or s is S.DISARMED:
+            if estop:
+                self._lock("emergency stop" if self._estop_requested else "emergency-stop watchdog expired")
+            elif s is S.READY and flying:
+                self.state = S.FLYING
+        elif s is S.FLYING or s is S.LEVEL_OUT:
+            if wdt_timeout or estop:
+                self._lock(f"setpoint watchdog: no setpoint for {age:.1f} s" if wdt_timeout
+                           else "emergency-stop watchdog expired")
+            elif s is S.FLYING and wdt_warning:
+                logger.info("setpoint watchdog: no setpoint for %.2f s, levelling out", age)
+                self.state = S.LEVEL_OUT
+            elif s is S.LEVEL_OUT and not wdt_warning:
+                self.state = S.FLYING
+            elif s is S.FLYING and not flying:
+                self.state, self._landed_t = S.LANDED, now
+        elif s is S.LANDED:
+            if now - self._landed_t > LANDING_TIMEOUT_S:
+                # reset -> preflight checks -> (auto-)arming -> ready, unless an emergency stop is pending
+                self.state = S.READY
+                if estop:
+                    self._lock("emergency-stop watchdog expired")
+            elif flying:
+                self.state = S.FLYING
 
-    def _control_high_level(self, now: float, pos: np.ndarray, yaw_deg: float) -> tuple[np.ndarray, float, bool]:
-        seg = self._segment
-        ref_p, ref_v = seg.sample(now)
-        if seg.finished(now) and self._landing and seg.end[2] <= self.params.ground_z + LANDED_HEIGHT_M:
-            self.mode = Mode.IDLE
-            self._segment = None
-            self._landing = False
-            # The motors stop; the supervisor reports "ready" (landed) once the drone rests on the floor.
-            return np.zeros(3), 0.0, False
-        yaw0, yaw1 = self._segment_yaw
-        frac = 1.0 if seg.duration <= 0 else min(max((now - seg.t0) / seg.duration, 0.0), 1.0)
-        yaw_ref = yaw0 + _wrap_deg(yaw1 - yaw0) * frac
-        # Velocity and acceleration feed-forward from the planner, as the firmware's controllers use them:
-        # with the first-order velocity response (tau) this tracks the trajectory without lagging behind it.
-        ff = ref_v + self.params.tau * seg.acceleration(now)
-        return ff + self.params.kp_pos * (ref_p - pos), self.params.kp_pos * _wrap_deg(yaw_ref - yaw_deg), True
+    def _track(self, sp: Setpoint, pos: np.ndarray, yaw_deg: float) -> tuple[np.ndarray, float]:
+        """The position controller as a desired velocity [m/s] and yaw rate [deg/s]."""
+        kp, t = self.params.kp_pos, sp.target
+        if sp.mode is Mode.POSITION:
+            return kp * (np.array(t[:3]) - pos), kp * _wrap_deg(t[3] - yaw_deg)
+        if sp.mode is Mode.VELOCITY:
+            return np.array(t[:3]), t[3]
+        if sp.mode is Mode.HOVER:  # body-frame horizontal velocity, absolute height
+            c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+            return np.array([c * t[0] - s * t[1], s * t[0] + c * t[1], kp * (t[3] - pos[2])]), t[2]
+        # TRAJECTORY: velocity and acceleration feed-forward from the planner, as the firmware's controllers
+        # use them: with the first-order velocity response (tau) this tracks without lagging behind.
+        ref_p, ref_v, ref_a = np.array(t[0:3]), np.array(t[3:6]), np.array(t[6:9])
+        return ref_v + self.params.tau * ref_a + kp * (ref_p - pos), kp * _wrap_deg(t[9] - yaw_deg)
 
 
 def _wrap_deg(a: float) -> float:

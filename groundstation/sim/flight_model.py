@@ -1,9 +1,12 @@
-"""Physics of the simulated Crazyflies: a batch of position-controlled quadrotors.
+"""Physics of the simulated Crazyflies: a batch of position-controlled quadrotors, their position estimates
+and their batteries.
 
 Pure numpy, batch-first (``[n_drones, 3]``), no sockets and no clocks: the caller passes ``dt``. The
 firmware logic in ``firmware.py`` turns setpoints into a desired velocity per drone; this module turns
-desired velocities into motion (first-order response, acceleration and speed limits, gravity when the
-motors are off, ground contact), adds Loco-Positioning-like estimation noise and drains the batteries.
+desired velocities into motion (first-order response, acceleration and speed limits, coasting against drag
+while the firmware has horizontal control off, gravity when the motors are off, ground contact), models the
+Loco Positioning estimate (correlated noise, outliers, dropouts) with the Kalman filter's position variance,
+and drains the batteries along a LiPo discharge curve.
 """
 from __future__ import annotations
 
@@ -11,6 +14,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from groundstation.cf_firmware import (MAX_COVARIANCE, PREDICT_RATE_HZ, PROC_NOISE_ACC_XY, PROC_NOISE_ACC_Z,
+                                       lipo_resting_voltage)
 
 GRAVITY = 9.81
 """[m/s^2]"""
@@ -30,22 +36,34 @@ class QuadParams:
     """Vertical speed limit [m/s]."""
     kp_pos: float = 2.0
     """Position-error gain of the position controller [1/s]: desired velocity = kp_pos * error."""
+    drag_xy: float = 0.3
+    """Horizontal linear drag per unit mass with the rotors at hover [1/s]: what slows a levelled drone
+    whose horizontal control is off. Estimate from the Crazyflie 2.0 identification (Foerster 2015): drag
+    about 1e-6 kg/rad times the sum of the rotor speeds (4 x 2000 rad/s at hover) over 0.027 kg."""
     ground_z: float = 0.0
     """Floor height [m]."""
     lps_sigma_xy: float = 0.03
-    """Standard deviation of the horizontal position-estimate error, like the Loco Positioning System [m]."""
+    """Standard deviation of the horizontal position-estimate error, like the Loco Positioning System [m];
+    also the steady state of the reported ``kalman.varPX``/``varPY`` (its square)."""
     lps_sigma_z: float = 0.04
     """Standard deviation of the vertical position-estimate error [m]."""
     lps_corr_time: float = 0.3
-    """Correlation time of the position-estimate error (Gauss-Markov) [s]."""
+    """Correlation time of the position-estimate error (Gauss-Markov) [s]; outliers and the drift left by a
+    dropout also fade with it once measurements are back."""
+    lps_outlier_rate: float = 0.1
+    """Outliers (a multipath or non-line-of-sight UWB range that passes the estimator's outlier filter) per
+    second and drone [1/s]: each moves the estimate by a random offset that then fades."""
+    lps_outlier_m: float = 0.08
+    """Mean size of an outlier's offset [m] (exponentially distributed)."""
+    lps_dropout_rate: float = 0.02
+    """Positioning dropouts (no measurement reaches the estimator) per second and drone [1/s]. Meanwhile the
+    estimate dead-reckons and its variance grows as the Kalman filter's prediction makes it."""
+    lps_dropout_mean_s: float = 0.2
+    """Mean duration of a random dropout [s] (exponentially distributed)."""
     vel_sigma: float = 0.02
     """Standard deviation of the velocity-estimate error, white [m/s]."""
     extpos_sigma: float = 0.002
     """Position-estimate error while external positions (motion capture) arrive [m]."""
-    battery_full_v: float = 4.2
-    """Open-circuit voltage of a full battery [V]."""
-    battery_empty_v: float = 3.0
-    """Open-circuit voltage of an empty battery [V]."""
     battery_capacity_as: float = 250 * 3.6
     """Capacity [A s] (250 mAh)."""
     hover_current_a: float = 2.1
@@ -65,20 +83,26 @@ class QuadBatch:
         self.vel = np.zeros((n, 3))
         self.yaw_deg = np.zeros(n)
         self.charge_as = np.full(n, params.battery_capacity_as)
-        self._est_err = np.zeros((n, 3))
         self._rng = np.random.default_rng(seed)
         self._sigma = np.array([params.lps_sigma_xy, params.lps_sigma_xy, params.lps_sigma_z])
+        self._est_err = self._sigma * self._rng.standard_normal((n, 3))
+        self.estimator = PositionEstimator(n, params, self._rng)
 
     @property
     def n(self) -> int:
         return self.pos.shape[0]
 
-    def step(self, dt: float, v_des: np.ndarray, yaw_rate_deg: np.ndarray, motors_on: np.ndarray) -> None:
-        """Advance ``dt`` seconds. ``motors_on`` [n] bool; where False the drone falls and ``v_des`` is ignored."""
+    def step(self, dt: float, v_des: np.ndarray, yaw_rate_deg: np.ndarray, motors_on: np.ndarray,
+             coasting: np.ndarray | None = None, extpos_fresh: np.ndarray | None = None) -> None:
+        """Advance ``dt`` seconds. ``motors_on`` [n] bool; where False the drone falls and ``v_des`` is ignored.
+        ``coasting`` [n] bool: horizontal control off (the firmware's level-out): only drag acts
+        horizontally. ``extpos_fresh`` [n] bool: external positions reach the estimator."""
         p = self.params
         accel = (v_des - self.vel) / p.tau
         norm = np.linalg.norm(accel, axis=1, keepdims=True)
         accel *= np.minimum(1.0, p.max_accel / np.maximum(norm, 1e-9))
+        if coasting is not None:
+            accel[:, :2] = np.where(coasting[:, None], -p.drag_xy * self.vel[:, :2], accel[:, :2])
         accel = np.where(motors_on[:, None], accel, np.array([0.0, 0.0, -GRAVITY]))
         self.vel += accel * dt
         self._limit_speed(motors_on)
@@ -89,6 +113,7 @@ class QuadBatch:
         current = np.where(motors_on, p.hover_current_a, p.idle_current_a)
         self.charge_as = np.maximum(self.charge_as - current * dt, 0.0)
         self._step_estimate_error(dt)
+        self.estimator.step(dt, np.zeros(self.n, dtype=bool) if extpos_fresh is None else extpos_fresh)
 
     def _limit_speed(self, motors_on: np.ndarray) -> None:
         p = self.params
@@ -112,29 +137,113 @@ class QuadBatch:
         self._est_err = self._est_err * decay + self._sigma * drive * self._rng.standard_normal(self._est_err.shape)
 
     def reset_estimate_error(self, i: int) -> None:
-        """A fresh estimator starts from a new draw of the error process."""
+        """A fresh estimator: a new draw of the error process, its variance back to the initial one."""
         self._est_err[i] = self._sigma * self._rng.standard_normal(3)
+        self.estimator.reset(i)
+
+    def position_variance(self, i: int) -> tuple[float, float, float]:
+        """kalman.varPX/PY/PZ [m^2] of drone ``i``."""
+        return tuple(float(v) for v in self.estimator.p_pos[i])
 
     def estimated_position(self, i: int, extpos_fresh: bool, extpos: np.ndarray | None = None,
                            extpos_age: float = 0.0) -> np.ndarray:
-        """Position as the onboard Kalman filter reports it: truth plus correlated LPS-like error, or, while
-        external positions (motion capture) arrive, the latest one propagated by the velocity plus a small
-        error (the filter trusts extpos far more than its own prediction)."""
+        """Position as the onboard Kalman filter reports it: truth plus correlated LPS-like error, outliers and
+        the drift of a dropout, or, while external positions (motion capture) arrive, the latest one
+        propagated by the velocity plus a small error (the filter trusts extpos far more than its own
+        prediction)."""
         small = self._est_err[i] * (self.params.extpos_sigma / self.params.lps_sigma_xy)
         if extpos_fresh and extpos is not None:
             return np.asarray(extpos, dtype=float) + self.vel[i] * extpos_age + small
         if extpos_fresh:
             return self.pos[i] + small
-        return self.pos[i] + self._est_err[i]
+        return self.pos[i] + self._est_err[i] + self.estimator.offset[i]
 
     def estimated_velocity(self, i: int) -> np.ndarray:
         return self.vel[i] + self.params.vel_sigma * self._rng.standard_normal(3)
 
     def battery_voltage(self, i: int, motors_on: bool) -> float:
+        """Terminal voltage [V]: the LiPo's resting voltage at its state of charge (the firmware's charge
+        curve, with its knee below 10 %) less the sag under the current drawn."""
         p = self.params
-        soc = self.charge_as[i] / p.battery_capacity_as
         current = p.hover_current_a if motors_on else p.idle_current_a
-        return p.battery_empty_v + (p.battery_full_v - p.battery_empty_v) * soc - p.internal_resistance_ohm * current
+        return lipo_resting_voltage(self.charge_as[i] / p.battery_capacity_as) - p.internal_resistance_ohm * current
+
+
+class PositionEstimator:
+    """The Loco Positioning estimate's departures from the truth and the Kalman filter's position variance,
+    per drone and axis.
+
+    The variance is a constant-velocity Kalman filter's, run as the firmware runs it
+    (``src/modules/src/kalman_core/kalman_core.c``): prediction adds ``(procNoiseAcc * dt)^2`` to the
+    velocity variance at 100 Hz and carries it into the position variance; every measurement update pulls the
+    position variance down; entries are bounded by MAX_COVARIANCE. The measurement noise is chosen so that
+    the steady state is ``lps_sigma**2``, the variance of the simulated error. During a dropout there are no
+    updates: the variance grows (past the ground station's 0.01 m^2 limit about 1.4 s in) and the estimate
+    drifts by a velocity error that random-walks with the same process noise.
+    """
+
+    def __init__(self, n: int, params: QuadParams, rng: np.random.Generator) -> None:
+        self.params, self._rng = params, rng
+        sigma = np.array([params.lps_sigma_xy, params.lps_sigma_xy, params.lps_sigma_z])
+        self._target = sigma**2
+        self._q = np.array([PROC_NOISE_ACC_XY, PROC_NOISE_ACC_XY, PROC_NOISE_ACC_Z]) ** 2 / PREDICT_RATE_HZ
+        """Velocity variance added per second of prediction [m^2/s^3]."""
+        # Steady state of the continuous filter: P_pos = sqrt(2) q^(1/4) r^(3/4) for measurement density r.
+        self._r_density = (self._target / (math.sqrt(2.0) * self._q**0.25)) ** (4.0 / 3.0)
+        self.p_pos = np.tile(self._target, (n, 1))
+        self.p_pv = np.tile(np.sqrt(self._q * self._r_density), (n, 1))
+        self.p_vel = np.tile(math.sqrt(2.0) * self._q**0.75 * self._r_density**0.25, (n, 1))
+        self.offset = np.zeros((n, 3))
+        """Outliers plus dropout drift [m], added to the estimate."""
+        self._drift_vel = np.zeros((n, 3))
+        self._outage_left = np.zeros(n)
+        """Seconds of dropout left per drone (0: measurements arrive)."""
+
+    def outage(self, i: int, seconds: float) -> None:
+        """No positioning measurement reaches drone ``i`` for ``seconds`` (failure injection)."""
+        self._outage_left[i] = max(self._outage_left[i], float(seconds))
+
+    def measuring(self) -> np.ndarray:
+        return self._outage_left <= 0.0
+
+    def reset(self, i: int) -> None:
+        """kalman.resetEstimation: stdDevInitialPosition (100 m, bounded) and stdDevInitialVelocity (0.01)."""
+        self.p_pos[i], self.p_pv[i], self.p_vel[i] = MAX_COVARIANCE, 0.0, 1e-4
+        self.offset[i], self._drift_vel[i] = 0.0, 0.0
+
+    def step(self, dt: float, extpos_fresh: np.ndarray) -> None:
+        p, rng, n = self.params, self._rng, len(self.p_pos)
+        was = self.measuring()
+        starts = rng.random(n) < p.lps_dropout_rate * dt
+        self._outage_left = np.where(starts & was, rng.exponential(p.lps_dropout_mean_s, n), self._outage_left)
+        self._outage_left = np.maximum(self._outage_left - dt, 0.0)
+        meas = self.measuring() | extpos_fresh
+        # prediction (a constant-velocity model per axis)
+        self.p_pos += 2.0 * dt * self.p_pv + dt * dt * self.p_vel
+        self.p_pv += dt * self.p_vel
+        self.p_vel += self._q * dt
+        # measurement update where positions arrive
+        r = np.where(extpos_fresh[:, None], 1e-4, self._r_density / dt)  # extpos: locSrv.extPosStdDev 0.01 m
+        k = self.p_pos / (self.p_pos + r)
+        upd = meas[:, None]
+        self.p_vel = np.where(upd, self.p_vel - k * self.p_pv, self.p_vel)
+        self.p_pv = np.where(upd, (1.0 - k) * self.p_pv, self.p_pv)
+        self.p_pos = np.where(upd, (1.0 - k) * self.p_pos, self.p_pos)
+        for a in (self.p_pos, self.p_pv, self.p_vel):
+            np.clip(a, -MAX_COVARIANCE, MAX_COVARIANCE, out=a)
+        # the estimate's departures: drift while dead-reckoning, outliers while measuring, both fade after
+        lost = ~meas
+        onset = lost & was
+        self._drift_vel[onset] = np.sqrt(self.p_vel[onset]) * rng.standard_normal((int(onset.sum()), 3))
+        self._drift_vel = np.where(lost[:, None], self._drift_vel + np.sqrt(self._q * dt) * rng.standard_normal((n, 3)),
+                                   0.0)
+        fade = math.exp(-dt / p.lps_corr_time)
+        self.offset = np.where(lost[:, None], self.offset + self._drift_vel * dt, self.offset * fade)
+        hit = meas & (rng.random(n) < p.lps_outlier_rate * dt)
+        if hit.any():
+            direction = rng.standard_normal((int(hit.sum()), 3))
+            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            self.offset[hit] += direction * rng.exponential(p.lps_outlier_m, (int(hit.sum()), 1))
 
 
 def smooth_segment(tau: float) -> tuple[float, float]:

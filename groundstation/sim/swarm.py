@@ -8,6 +8,11 @@ use (tests, the demo)::
         uris = sims.uris            # ["udp://127.0.0.1:19850", ...]
         ...                         # connect cflib / open_link(uri)
         sims.kill_link(0)           # drone 0 stops answering (keeps flying on its own watchdogs)
+        sims.positioning_outage(1, 3.0)  # drone 1 gets no positioning for 3 s (its variance grows)
+        sims.drone_contacts         # how many times two drones touched (both crashed: motors off, locked)
+
+Drones touch when their centres come closer than the sum of their radii (``radii``, default the spec's
+pursuer radius): both crash, as hardware would, counted once per contact.
 
 ``swarm-gs sim --drones N`` runs the same thing standalone for any cflib client.
 """
@@ -19,12 +24,14 @@ import socket
 import threading
 import time
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 from groundstation.sim.crazyflie import SimCrazyflie
 from groundstation.sim.firmware import SupervisorState
 from groundstation.sim.flight_model import QuadBatch, QuadParams
+from runtime.spec import SwarmSpec
 
 logger = logging.getLogger(__name__)
 
@@ -79,9 +86,17 @@ class SimSwarm:
     def __init__(self, n: int, base_port: int = DEFAULT_BASE_PORT, host: str = "127.0.0.1", seed: int = 0,
                  params: QuadParams = QuadParams(), spacing: float = 0.5,
                  start_positions: np.ndarray | None = None, physics_dt: float = 0.005,
-                 latency_probe: bool = False) -> None:
+                 latency_probe: bool = False, radii: float | Sequence[float] | None = None) -> None:
         if n < 1:
             raise SimError(f"SimSwarm needs at least one drone, got n={n}")
+        r = np.asarray(SwarmSpec().pursuer.radius if radii is None else radii, dtype=float)
+        r = np.full(n, float(r)) if r.ndim == 0 else r
+        if r.shape != (n,) or not np.all(np.isfinite(r)) or np.any(r <= 0):
+            raise SimError(f"radii: expected one radius > 0 [m] or one per drone ({n}), got {radii!r}")
+        self.radii = r.copy()
+        """Body radius of each drone [m]: closer than the sum of two, they touch and both crash."""
+        self._in_contact: set[tuple[int, int]] = set()
+        self._contact_events: list[tuple[float, int, int]] = []
         self.host, self.base_port, self.physics_dt = host, base_port, physics_dt
         if start_positions is None:
             cols = max(1, int(np.ceil(np.sqrt(n))))
@@ -191,6 +206,24 @@ class SimSwarm:
         with self._lock:
             return self.drones[i].firmware.state is SupervisorState.LOCKED
 
+    def positioning_outage(self, i: int, seconds: float) -> None:
+        """No positioning measurement reaches drone ``i`` for ``seconds``: its estimate dead-reckons and its
+        ``kalman.varP*`` grows (a blocked anchor, a UWB dropout)."""
+        with self._lock:
+            self.model.estimator.outage(i, seconds)
+
+    @property
+    def drone_contacts(self) -> int:
+        """How many times two drones touched (each pair counted again only after it has separated)."""
+        with self._lock:
+            return len(self._contact_events)
+
+    @property
+    def contact_events(self) -> list[tuple[float, int, int]]:
+        """Every contact as (time [s, time.monotonic()], i, j) with i < j."""
+        with self._lock:
+            return list(self._contact_events)
+
     # ---- the loop ----------------------------------------------------------------------------------
 
     def _run(self) -> None:
@@ -262,6 +295,30 @@ class SimSwarm:
         v_des = np.zeros((n, 3))
         yaw_rate = np.zeros(n)
         motors = np.zeros(n, dtype=bool)
+        coasting = np.zeros(n, dtype=bool)
         for i, drone in enumerate(self.drones):
-            v_des[i], yaw_rate[i], motors[i] = drone.control(t)
-        self.model.step(dt, v_des, yaw_rate, motors)
+            v_des[i], yaw_rate[i], motors[i], coasting[i] = drone.control(t)
+        extpos = np.array([d.firmware.extpos_fresh(t) for d in self.drones])
+        self.model.step(dt, v_des, yaw_rate, motors, coasting, extpos)
+        if n > 1:
+            self._check_contacts(t, motors)
+
+    def _check_contacts(self, t: float, motors: np.ndarray) -> None:
+        """Pairs closer than the sum of their radii crash, both: motors off and locked, as on hardware
+        where touching propellers end the flight. Two drones resting on the floor side by side do not."""
+        pos = self.model.pos
+        d = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=2)
+        touching = d < self.radii[:, None] + self.radii[None, :]
+        resting = ~motors & (pos[:, 2] <= self.model.params.ground_z + 1e-6)
+        now_in: set[tuple[int, int]] = set()
+        for i, j in zip(*np.nonzero(np.triu(touching, 1))):
+            i, j = int(i), int(j)
+            if resting[i] and resting[j]:
+                continue
+            now_in.add((i, j))
+            if (i, j) not in self._in_contact:
+                self._contact_events.append((t, i, j))
+                logger.warning("drones %d and %d touched (%.3f m apart): both crash", i, j, d[i, j])
+                for k in (i, j):
+                    self.drones[k].firmware.crash(t, f"drone {k}: collision with drone {j if k == i else i}")
+        self._in_contact = now_in
