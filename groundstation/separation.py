@@ -22,7 +22,8 @@ closes in by at most
 
     H_i * max(k_i, -n.u_i),   k_i = max(0, -n.v_i, -n.w_i),   H_i = latency + period + s_i / (2 max_decel)
 
-where ``s_i >= |v_i|, |w_i|, |u_i|`` bounds its speed (an octagon keeps ``|u_i| <= s_i``). The centre distance
+where ``s_i >= |v_i|, |w_i|, |u_i|`` bounds its speed (commands are first cut to ``max_speed``, as the geofence
+would cut them, and an octagon of radius ``s_i >= max_speed / cos(pi/8)`` keeps ``|u_i| <= s_i``). The centre distance
 is at least the projection on ``n``, so a pair stays ``min_distance`` apart when the two bounds sum to at
 most the gap ``c = |p_i - p_j| - min_distance``. ``max(a, b) + max(c, d) <= g`` is four linear inequalities, one
 of them constant, so the constraint set is a polytope and the least change of the commands is a QP:
@@ -30,11 +31,15 @@ of them constant, so the constraint set is a polytope and the least change of th
     minimise sum |u_i - desired_i|^2  over the controlled drones
     such that, per pair: H_i(-n.u_i) + H_j(n.u_j) <= c, H_i(-n.u_i) <= c - H_j k_j, H_j(n.u_j) <= c - H_i k_i
 
+The rows use ``H_i + latency`` in place of ``H_i``: the next solve's plan flies this command for another
+latency before its own command acts, and this margin is what makes braking (``u = 0``) feasible again at the
+next solve (recursive feasibility, up to the turn of ``n`` in one period; the closed-loop test measures it).
 An obstacle (holding, landing, lost, on the ground: it does not obey the filter) is a drone whose command is
-its measured velocity. ``u = 0`` satisfies every pair whose constant part ``H_i k_i + H_j k_j <= c`` holds, so
-once the drones of pairs whose own momentum already breaks it are braked (``u = 0``, the most the filter can
-do for them), the QP is feasible by construction. Pairs already closer than ``min_distance`` (position noise)
-may only move apart (``-n.u_i <= 0``). Safe by construction is also the closed-form fallback used when OSQP
+its measured velocity. Per pair, by its constant part: with ``(H + latency) k`` within the gap the rows above;
+with only ``H k`` within it (or already closer than ``min_distance``, from position noise) its drones may not
+close in at all (``-n.u_i <= 0``), which keeps the plan safe; beyond that the pair's own momentum breaks the
+bound and its controlled drones brake (``u = 0``, the most the filter can do). ``u = 0`` then satisfies every
+row, so the QP is feasible by construction. Safe by construction is also the closed-form fallback used when OSQP
 does not return a verified solution: each drone scales its own command down to its half of each gap.
 Every result is checked against the constraints before it is returned; NaN input, coincident drones or a
 failed check give a brake (zero velocity), never an unsafe command.
@@ -58,8 +63,9 @@ Positioning System's error is about 0.03 m standard deviation per axis (the simu
 so 0.1 m is over 3 sigma in the plane."""
 COINCIDENT = 1e-6
 """Centres closer than this [m] have no direction between them: both drones brake."""
-VERIFY_TOL = 1e-9
-"""Slack [m] of the final constraint check (rounding of the constraint arithmetic)."""
+VERIFY_TOL = 1e-6
+"""Slack [m] of the final constraint check: the solver's accuracy on constraints that are tight at zero (a
+micrometre over the whole horizon, against the 0.2 m that ``POSITION_ERROR`` keeps)."""
 QP_MARGIN = 1e-6
 """The QP's constraints are tightened by this [m], so that OSQP's tolerance cannot end outside them."""
 _OCTAGON = np.array([[math.cos(k * math.pi / 4), math.sin(k * math.pi / 4)] for k in range(8)])
@@ -130,6 +136,11 @@ class SeparationResult:
     """"unchanged" (the commands were safe), "qp", "pairwise" (fallback), "brake" (bad input), "none"."""
 
 
+NORMAL, NO_CLOSING, HOPELESS = 0, 1, 2
+"""Pair tiers: constrained as in the module docstring; may only stop closing in (too close already, or too
+little slack left for the recursive margin); nothing helps (its drones brake)."""
+
+
 @dataclass
 class _Pairs:
     """The constraint data of every pair that can matter: index arrays and per-pair numbers."""
@@ -140,28 +151,47 @@ class _Pairs:
     """[P, 2] unit vector from j to i."""
     gap: np.ndarray
     """[P] distance - min_distance [m]; negative for pairs already too close."""
-    hk_i: np.ndarray
-    """[P] H_i k_i: how far i closes in on its momentum and previous command alone [m]."""
-    hk_j: np.ndarray
-    close: np.ndarray
-    """[P] bool: already closer than min_distance (may only move apart)."""
+    k_i: np.ndarray
+    """[P] how fast i closes in on its momentum and previous command alone [m/s]."""
+    k_j: np.ndarray
+    tier: np.ndarray
+    """[P] NORMAL, NO_CLOSING or HOPELESS."""
+
+    def take(self, keep: np.ndarray) -> "_Pairs":
+        return _Pairs(*(getattr(self, f)[keep] for f in ("i", "j", "n", "gap", "k_i", "k_j", "tier")))
 
 
-def _speed_bounds(vel: np.ndarray, prev: np.ndarray, desired: np.ndarray, lim: Limits) -> np.ndarray:
+def _speed_bounds(vel: np.ndarray, prev: np.ndarray, lim: Limits) -> np.ndarray:
+    """Per drone s >= |v|, |w| and the radius of the octagon that bounds |u| (which holds every command up to
+    ``max_speed``)."""
     s = np.maximum(np.linalg.norm(vel, axis=1), np.linalg.norm(prev, axis=1))
-    return np.maximum(np.maximum(s, lim.max_speed), np.linalg.norm(desired, axis=1) / _APOTHEM)
+    return np.maximum(s, lim.max_speed / _APOTHEM)
 
 
-def _pairs(pos, vel, prev, s, active, lim: Limits) -> tuple[_Pairs, np.ndarray, np.ndarray]:
-    """Pairs with at least one ``active`` drone near enough to matter; returns them, the per-drone H and the
-    drones of coincident pairs."""
+def _cap_speed(desired: np.ndarray, max_speed: float) -> np.ndarray:
+    """Commands faster than ``max_speed`` cut to it, direction kept (as the geofence would cut them after),
+    so that a fast request cannot lengthen its own braking horizon."""
+    speed = np.linalg.norm(desired, axis=1)
+    return desired * np.minimum(1.0, max_speed / np.maximum(speed, 1e-12))[:, None]
+
+
+def _horizons(s: np.ndarray, lim: Limits) -> tuple[np.ndarray, np.ndarray]:
+    """Per drone: H of the plan (latency, one period, braking from speed s), and H plus one more latency,
+    used for the commands. The extra latency is the recursive margin: the next solve's plan flies this
+    command for another latency before its own command acts, and must still find braking safe."""
     h = lim.horizon + s / (2.0 * lim.max_decel)
+    return h, h + (lim.horizon - lim.period)
+
+
+def _pairs(pos, vel, prev, s, active, lim: Limits) -> tuple[_Pairs, np.ndarray]:
+    """Pairs with at least one ``active`` drone near enough to matter, and the drones of coincident pairs."""
+    h, hl = _horizons(s, lim)
     i, j = np.triu_indices(len(pos), 1)
     keep = active[i] | active[j]
     i, j = i[keep], j[keep]
     delta = pos[i] - pos[j]
     dist = np.hypot(delta[:, 0], delta[:, 1])
-    reach = h[i] * s[i] + h[j] * s[j]  # neither can close in by more
+    reach = hl[i] * s[i] + hl[j] * s[j]  # neither can close in by more
     near = dist - lim.min_distance <= reach
     i, j, delta, dist = i[near], j[near], delta[near], dist[near]
     coincident = dist < COINCIDENT
@@ -173,17 +203,21 @@ def _pairs(pos, vel, prev, s, active, lim: Limits) -> tuple[_Pairs, np.ndarray, 
     k_i = np.maximum(0.0, np.maximum(-(n * vel[i]).sum(1), -(n * prev[i]).sum(1)))
     k_j = np.maximum(0.0, np.maximum((n * vel[j]).sum(1), (n * prev[j]).sum(1)))
     gap = dist - lim.min_distance
-    return _Pairs(i, j, n, gap, h[i] * k_i, h[j] * k_j, gap < 0), h, bad
+    tier = np.full(len(i), NORMAL)
+    tier[hl[i] * k_i + hl[j] * k_j > gap] = NO_CLOSING
+    tier[h[i] * k_i + h[j] * k_j > gap] = HOPELESS
+    tier[gap < 0] = NO_CLOSING
+    return _Pairs(i, j, n, gap, k_i, k_j, tier), bad
 
 
-def _rows(pp: _Pairs, h: np.ndarray, free: np.ndarray, col: np.ndarray) -> tuple[list, list]:
+def _rows(pp: _Pairs, hl: np.ndarray, free: np.ndarray, col: np.ndarray) -> tuple[list, list]:
     """Linear constraints ``sum coef * u[col] <= rhs`` on the free drones' commands: (entries, rhs)."""
     entries: list[list[tuple[int, np.ndarray]]] = []
     rhs: list[float] = []
     for q in range(len(pp.i)):
         i, j, n, g = pp.i[q], pp.j[q], pp.n[q], pp.gap[q]
         fi, fj = free[i], free[j]
-        if pp.close[q]:  # already too close: neither free drone may close in
+        if pp.tier[q] == NO_CLOSING:
             if fi:
                 entries.append([(col[i], -n)])
                 rhs.append(0.0)
@@ -191,16 +225,16 @@ def _rows(pp: _Pairs, h: np.ndarray, free: np.ndarray, col: np.ndarray) -> tuple
                 entries.append([(col[j], n)])
                 rhs.append(0.0)
             continue
-        ai, aj = -h[i] * n, h[j] * n  # H_i(-n.u_i), H_j(n.u_j) as coefficient vectors
+        ai, aj = -hl[i] * n, hl[j] * n  # Hl_i(-n.u_i), Hl_j(n.u_j) as coefficient vectors
         if fi and fj:
             entries.append([(col[i], ai), (col[j], aj)])
             rhs.append(g)
         if fi:
             entries.append([(col[i], ai)])
-            rhs.append(g - pp.hk_j[q])
+            rhs.append(g - hl[j] * pp.k_j[q])
         if fj:
             entries.append([(col[j], aj)])
-            rhs.append(g - pp.hk_i[q])
+            rhs.append(g - hl[i] * pp.k_i[q])
     return entries, rhs
 
 
@@ -226,7 +260,7 @@ def _solve_qp(entries, rhs, desired: np.ndarray, s: np.ndarray) -> np.ndarray | 
             rows += [r, r]
             cols += [2 * k, 2 * k + 1]
             vals += [float(c[0]), float(c[1])]
-        b.append(bound - QP_MARGIN)
+        b.append(bound - min(QP_MARGIN, max(bound, 0.0) / 2))  # u = 0 must stay feasible where it was
         r += 1
     for k in range(m):  # |u_k| <= s_k keeps the braking bound H valid
         for face in _OCTAGON:
@@ -242,26 +276,28 @@ def _solve_qp(entries, rhs, desired: np.ndarray, s: np.ndarray) -> np.ndarray | 
                polishing=True, eps_abs=1e-7, eps_rel=1e-7, max_iter=10000)
     res = prob.solve(raise_error=False)
     if res.info.status not in ("solved", "solved inaccurate") or res.x is None or not np.all(np.isfinite(res.x)):
+        log.debug("separation QP: %s", res.info.status)
         return None
     return np.asarray(res.x, dtype=float).reshape(m, 2)
 
 
-def _pairwise(pp: _Pairs, h: np.ndarray, free: np.ndarray, desired: np.ndarray) -> np.ndarray:
+def _pairwise(pp: _Pairs, hl: np.ndarray, free: np.ndarray, desired: np.ndarray) -> np.ndarray:
     """Closed-form fallback: each free drone scales its own command down to its share of each gap (half the
-    slack of a pair of free drones, all of it against an obstacle); only moving apart when too close."""
+    slack of a pair of free drones, all of it against an obstacle); NO_CLOSING pairs only stop closing in."""
     scale = np.ones(len(desired))
     for q in range(len(pp.i)):
         i, j, n = pp.i[q], pp.j[q], pp.n[q]
-        slack = pp.gap[q] - pp.hk_i[q] - pp.hk_j[q]
+        hk_i, hk_j = hl[i] * pp.k_i[q], hl[j] * pp.k_j[q]
+        slack = pp.gap[q] - hk_i - hk_j
         both = free[i] and free[j]
-        for me, sign, hk in ((i, -1.0, pp.hk_i[q]), (j, 1.0, pp.hk_j[q])):
+        for me, sign, hk in ((i, -1.0, hk_i), (j, 1.0, hk_j)):
             if not free[me]:
                 continue
             closing = sign * float(n @ desired[me])
             if closing <= 0:
                 continue
-            budget = 0.0 if pp.close[q] else max(hk + (slack / 2 if both else slack), 0.0)
-            scale[me] = min(scale[me], budget / (h[me] * closing))
+            budget = 0.0 if pp.tier[q] == NO_CLOSING else max(hk + (slack / 2 if both else slack), 0.0)
+            scale[me] = min(scale[me], budget / (hl[me] * closing))
     return desired * np.clip(scale, 0.0, 1.0)[:, None]
 
 
@@ -286,11 +322,12 @@ def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np
     want[~ctrl | bad_cmd] = 0.0
     prev[~ctrl] = vel[~ctrl]  # an obstacle's command is what it does
     prev[~np.all(np.isfinite(prev), axis=1)] = vel[~np.all(np.isfinite(prev), axis=1)]
-    s = _speed_bounds(vel, prev, want, limits)
-    pp, h, braked = _pairs(pos, vel, prev, s, ctrl, limits)
+    want = _cap_speed(want, limits.max_speed)
+    s = _speed_bounds(vel, prev, limits)
+    pp, braked = _pairs(pos, vel, prev, s, ctrl, limits)
+    _, hl = _horizons(s, limits)
     braked &= ctrl
-    # pairs whose momentum alone breaks the bound: their controlled drones brake (the most they can do)
-    hopeless = ~pp.close & (pp.hk_i + pp.hk_j > pp.gap)
+    hopeless = pp.tier == HOPELESS  # momentum alone breaks the bound: brake, the most that can be done
     braked[pp.i[hopeless]] |= ctrl[pp.i[hopeless]]
     braked[pp.j[hopeless]] |= ctrl[pp.j[hopeless]]
     braked |= bad_cmd
@@ -299,9 +336,8 @@ def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np
     free_idx = np.flatnonzero(free)
     col = np.full(n, -1)
     col[free_idx] = np.arange(len(free_idx))
-    keep = ~hopeless
-    pp = _Pairs(pp.i[keep], pp.j[keep], pp.n[keep], pp.gap[keep], pp.hk_i[keep], pp.hk_j[keep], pp.close[keep])
-    entries, rhs = _rows(pp, h, free, col)
+    pp = pp.take(~hopeless)
+    entries, rhs = _rows(pp, hl, free, col)
     if _violation(entries, rhs, want, col, free_idx) <= VERIFY_TOL:
         out[free] = want[free]
         return SeparationResult(out, braked, "unchanged")
@@ -319,7 +355,7 @@ def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np
                 log.debug("separation QP solution failed the check: pairwise fallback")
                 u = None
     if u is None:
-        u = _pairwise(pp, h, free, want)
+        u = _pairwise(pp, hl, free, want)
         if _violation(entries, rhs, u, col, free_idx) > VERIFY_TOL:  # cannot happen; never send it anyway
             log.error("separation fallback failed its own check: braking every controlled drone")
             return SeparationResult(out, ctrl.copy(), "brake")
