@@ -15,10 +15,11 @@ pytest.importorskip("pymavlink")
 
 from flight_fixtures import stream as _stream, wait_until  # noqa: E402
 from groundstation.link import FlightState, LinkError, open_link, scheme_of  # noqa: E402
-from groundstation.mavlink_link import (MavlinkLink, enu_to_ned, fence_items, ned_to_enu, parse_uri,  # noqa: E402
-                                        split_baud, yaw_enu_to_ned, yaw_ned_to_enu)
+from groundstation.mavlink_autopilot import Autopilot, fence_items  # noqa: E402
+from groundstation.mavlink_link import (MavlinkLink, enu_to_ned, ned_to_enu, parse_uri, split_baud,  # noqa: E402
+                                        yaw_enu_to_ned, yaw_ned_to_enu)
 from groundstation.safety import FenceConfig, KeepOut  # noqa: E402
-from groundstation.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig, VehicleMode  # noqa: E402
+from groundstation.sim.mavlink_vehicle import LAND_PAUSE, MavlinkVehicle, VehicleConfig, VehicleMode  # noqa: E402
 from groundstation.sim.swarm import free_base_port  # noqa: E402
 
 START = (0.5, -0.3, 0.0)
@@ -31,7 +32,8 @@ _wait = functools.partial(wait_until, period=0.01)
 def pair():
     """(vehicle, link): the vehicle sends to the port the link listens on (udpout -> udpin)."""
     port = free_base_port(1)
-    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", VehicleConfig(), start=START, seed=3) as vehicle:
+    config = VehicleConfig(params={"GUID_TIMEOUT": 0.5})
+    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", config, start=START, seed=3) as vehicle:
         link = open_link(f"mavlink:udpin:127.0.0.1:{port}", connect_timeout=5.0)
         try:
             yield vehicle, link
@@ -78,11 +80,14 @@ def test_no_vehicle_is_a_named_error_within_the_timeout():
     assert time.monotonic() - t0 < 1.5
 
 
-# ---- the vehicle through the link -----------------------------------------------------------------
+# ---- the vehicle through the link (ArduCopter personality) ----------------------------------------
 
 def test_heartbeat_and_local_position_telemetry(pair):
     vehicle, link = pair
     assert link.target_system == 1 and not link.armed
+    assert link.autopilot is Autopilot.ARDUPILOT and link.mode == "STABILIZE"  # ArduCopter boots in STABILIZE
+    o, want = link.origin, vehicle.config.origin  # GPS_GLOBAL_ORIGIN on request
+    assert (o.lat, o.lon, o.alt) == pytest.approx((want.lat, want.lon, want.alt), abs=1e-6)
     t0 = link.telemetry()
     time.sleep(0.5)
     t1 = link.wait_telemetry(1.0, lambda s: s.battery > 0)
@@ -93,77 +98,86 @@ def test_heartbeat_and_local_position_telemetry(pair):
     rate = (link.stats().telemetry_received - 1) / (t1.t - link._opened_at)
     assert 30.0 < rate < 60.0  # the 50 Hz stream asked for with SET_MESSAGE_INTERVAL
     assert t1.link_quality > 0.8
-    assert vehicle._gcs_seen  # the link's own heartbeats reach the vehicle
+    # the link turned on the firmware's GCS failsafe (off by default) with its own timeout
+    assert vehicle.params["FS_GCS_ENABLE"] == 5 and vehicle.params["FS_GCS_TIMEOUT"] == 1.0
+    assert math.isfinite(vehicle._last_gcs)  # the link's heartbeats reach the vehicle
 
 
-def test_setpoints_on_the_ground_are_ignored_and_takeoff_arms(pair):
+def test_setpoints_outside_guided_are_ignored_and_takeoff_sets_guided(pair):
     # Flying it with setpoints, through both frames, is in tests/test_link_contract.py.
     vehicle, link = pair
     _stream(lambda: link.send_velocity(0.5, 0.0, 0.0), 0.1)
-    assert vehicle.ignored_setpoints > 0 and vehicle.mode is VehicleMode.DISARMED  # not in the air: ignored
+    assert vehicle.ignored_setpoints > 0 and vehicle.mode is VehicleMode.DISARMED  # STABILIZE: ignored
     assert np.allclose(vehicle.velocity, 0.0)
-    link.takeoff(0.4, 0.5)
-    assert vehicle.armed and link.wait_telemetry(0.5, lambda s: s.flight_state is FlightState.FLYING)
-    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    link.takeoff(0.4, 0.5).result(timeout=5.0)
+    assert vehicle.flight_mode == "GUIDED" and vehicle.armed
+    assert link.wait_telemetry(1.0, lambda s: s.flight_state is FlightState.FLYING)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 3.0)
     assert vehicle.position[2] == pytest.approx(0.4, abs=0.06)
     _stream(lambda: link.send_velocity(0.0, 0.5, 0.0), 0.4)
     assert vehicle.mode is VehicleMode.VELOCITY and vehicle.velocity[1] > 0.3  # north is +y
-    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 0.7)  # stopped for setpoint_timeout (0.5 s): hold
-    assert np.linalg.norm(vehicle.velocity) < 0.5
-    link.land(0.4)
-    assert _wait(lambda: vehicle.mode is VehicleMode.DISARMED, 1.5)
+    t_last = time.monotonic()
+    # GUID_TIMEOUT (0.5 s in this fixture, 3 s by default): the stale velocity target becomes a stop
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    assert time.monotonic() - t_last > 0.4
+    link.land(0.4).result(timeout=5.0)
+    assert vehicle.flight_mode == "LAND"
+    assert _wait(lambda: vehicle.mode is VehicleMode.DISARMED, 3.0)  # LAND disarms on touchdown
     assert link.wait_telemetry(1.0, lambda s: s.flight_state is FlightState.DISARMED)
 
 
-def test_fence_upload_and_the_vehicle_lands_itself_when_it_leaves_it(pair):
+def test_fence_goes_up_as_global_items_and_params_and_a_breach_lands(pair):
     vehicle, link = pair
     fence = FenceConfig(box=(-1.0, 1.5, -1.0, 1.0), z_min=0.2, z_max=1.2, margin=0.2,
                         keep_out=(KeepOut(1.0, 0.5, 0.2),))
-    assert link.upload_fence(fence) == len(fence_items(fence)) == 5
+    items = fence_items(fence, link.origin)
+    assert link.upload_fence(fence) == len(items) == 5
+    assert all(abs(it["x"]) > 1e8 for it in items)  # latitude x 1e7, not metres
     vf = vehicle.fence
-    assert vf is not None and vf.z_max == pytest.approx(1.2, rel=1e-6)  # float32 on the wire
-    assert len(vf.circles) == 1 and vf.circles[0] == pytest.approx((1.0, 0.5, 0.2), rel=1e-6)
-    assert np.allclose(np.sort(vf.polygon, axis=0), np.sort(fence.polygon, axis=0))
+    assert vf is not None and len(vf.circles) == 1
+    assert vf.circles[0] == pytest.approx((1.0, 0.5, 0.2), abs=0.02)  # 1e-7 degree is about 1 cm
+    assert np.allclose(np.sort(vf.polygon, axis=0), np.sort(fence.polygon, axis=0), atol=0.02)
+    assert vehicle.params["FENCE_ENABLE"] == 1 and vehicle.params["FENCE_ACTION"] == 2
+    assert vehicle.fence_ceiling == pytest.approx(1.2, rel=1e-6)  # FENCE_ALT_MAX, float32 on the wire
     assert vf.contains(np.array([0.0, 0.0, 1.0])) and not vf.contains(np.array([1.0, 0.55, 1.0]))
-    assert not vf.contains(np.array([0.0, 0.0, 1.3])) and not vf.contains(np.array([2.0, 0.0, 1.0]))
-    link.takeoff(0.4, 0.5)
-    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    assert not vf.contains(np.array([2.0, 0.0, 1.0]))
+    link.takeoff(0.4, 0.5).result(timeout=5.0)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 3.0)
     # The vehicle's fence is the backstop behind the ground station's geofence: sent straight through the
-    # raw link, a target past the ceiling makes the vehicle land on its own.
+    # raw link, a target past the ceiling makes the vehicle land on its own (FENCE_ACTION 2).
     _stream(lambda: link.send_position(START[0], START[1], 1.6), 1.2)
     assert vehicle.fence_breaches >= 1 and vehicle.position[2] < 1.4  # breach at 1.2 m + stopping distance
-    assert vehicle.mode is VehicleMode.LAND
-    assert _wait(lambda: vehicle.velocity[2] < -0.3, 0.5)  # descending; setpoints no longer obeyed
+    assert vehicle.flight_mode == "LAND" and vehicle.mode is VehicleMode.LAND
+    assert _wait(lambda: vehicle.velocity[2] < -0.3, 1.0)  # descending; setpoints no longer obeyed
     link.clear_fence()
-    assert vehicle.fence is None
+    assert vehicle.fence is None and vehicle.params["FENCE_ENABLE"] == 0
 
 
-def test_vehicle_lands_when_the_ground_station_heartbeats_stop(pair):
+def test_gcs_failsafe_lands_after_the_firmware_pause_and_disarms(pair):
     vehicle, link = pair
-    link.takeoff(0.3, 0.4)
-    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    link.takeoff(0.3, 0.4).result(timeout=5.0)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 3.0)
     t_close = time.monotonic()
     link.close()  # no more GCS heartbeats
-    time.sleep(0.6)
-    assert vehicle.mode is VehicleMode.HOLD  # within gcs_timeout (1 s) it flies on
-    assert _wait(lambda: vehicle.mode is VehicleMode.LAND, 1.0)
-    # the vehicle counts gcs_timeout (1 s) from the last heartbeat it got, up to one heartbeat period
-    # (link.heartbeat_period, 0.25 s) before the close
-    assert 1.0 - link.heartbeat_period - 0.05 < time.monotonic() - t_close < 1.5
-    assert _wait(lambda: vehicle.mode is VehicleMode.DISARMED, 2.0)
+    assert _wait(lambda: vehicle.flight_mode == "LAND", 2.5)
+    # FS_GCS_TIMEOUT (1 s) counted from the last heartbeat, up to one heartbeat period before the close
+    assert 1.0 - link.heartbeat_period - 0.05 < time.monotonic() - t_close < 2.0
+    z0 = vehicle.position[2]
+    assert not _wait(lambda: vehicle.position[2] < z0 - 0.1, LAND_PAUSE - 0.5)  # LAND_WITH_DELAY_MS: it waits
+    assert _wait(lambda: vehicle.mode is VehicleMode.DISARMED, LAND_PAUSE + 3.0)
     assert _wait(lambda: vehicle.position[2] == 0.0, 0.3)
     assert vehicle.failsafe_landings == 1
 
 
-def test_emergency_stop_terminates_and_locks_until_reboot(pair):
+def test_emergency_stop_disarms_and_the_link_keeps_it_locked_until_reboot(pair):
     vehicle, link = pair
-    link.takeoff(0.4, 0.5)
-    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
+    link.takeoff(0.4, 0.5).result(timeout=5.0)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 3.0)
     link.emergency_stop()
-    assert _wait(lambda: vehicle.mode is VehicleMode.TERMINATED, 0.3)
+    assert _wait(lambda: vehicle.mode is VehicleMode.DISARMED, 0.3)  # ArduCopter: termination is a disarm
     assert _wait(lambda: vehicle.position[2] == 0.0, 1.0)  # motors off: it falls
     assert link.wait_telemetry(1.0, lambda s: s.flight_state is FlightState.LOCKED)
-    with pytest.raises(LinkError, match="arming refused"):
+    with pytest.raises(LinkError, match="locked"):
         link.takeoff(0.5, 1.0)
     result = link.command(link._mav.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 1)
     assert result == link._mav.MAV_RESULT_ACCEPTED
@@ -172,9 +186,9 @@ def test_emergency_stop_terminates_and_locks_until_reboot(pair):
 
 def test_disarm_in_the_air_is_refused_unless_forced(pair):
     vehicle, link = pair
-    link.takeoff(0.4, 0.6)
-    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)
-    with pytest.raises(LinkError, match="disarming refused"):
+    link.takeoff(0.4, 0.6).result(timeout=5.0)
+    assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 3.0)
+    with pytest.raises(LinkError, match="disarming refused: MAV_RESULT_FAILED"):
         link.disarm()
     link.disarm(force=True)
     assert _wait(lambda: vehicle.position[2] == 0.0, 1.0)

@@ -65,7 +65,7 @@ PX4_PARAMS = {"NAV_DLL_ACT": 0.0, "COM_DL_LOSS_T": 10.0, "COM_OF_LOSS_T": 1.0, "
               "RTL_RETURN_ALT": 60.0, "GF_ACTION": 2.0, "GF_MAX_VER_DIST": 0.0}
 """PX4 parameter defaults the simulator uses (``commander_params.c``, ``navigator`` and ``mc_pos_control`` params)."""
 LAND_PAUSE = 4.0
-"""A failsafe LAND waits this long before descending [s] (ArduCopter ``LAND_WITH_DELAY_MS``)."""
+"""A failsafe LAND waits this long before descending [s] (``LAND_WITH_DELAY_MS`` in ``ArduCopter/config.h``)."""
 
 
 @dataclass(frozen=True)
@@ -352,14 +352,15 @@ class MavlinkVehicle(AutopilotCommands):
                 self._disarm("GCS failsafe on the ground")
             elif self.mode in AIRBORNE:
                 action = "LAND" if int(self.params["FS_GCS_ENABLE"]) in (4, 5, 7) else "RTL"
-                self._failsafe(f"no GCS heartbeat for {silent:.2f} s", action)
+                # do_failsafe_action(LAND): set_mode_land_with_pause
+                self._failsafe(f"no GCS heartbeat for {silent:.2f} s", action, pause=True)
         if self._fence_on() and self.mode in AIRBORNE and not self.fence.contains(p, self.fence_ceiling):
             self.fence_breaches += 1
             if self.px4:
                 action = {2: "LOITER", 3: "RTL", 5: "LAND"}.get(int(self.params["GF_ACTION"]))
             else:
                 action = {1: "RTL", 2: "LAND"}.get(int(self.params["FENCE_ACTION"]), "LAND")
-            if action is not None:
+            if action is not None:  # ArduCopter fence.cpp: a plain set_mode(LAND), no pause
                 self._failsafe(f"fence breached at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})", action)
         if not self.px4 and self.mode is VehicleMode.VELOCITY \
                 and now - self._setpoint_t > max(self.params["GUID_TIMEOUT"], 0.1):
@@ -367,12 +368,12 @@ class MavlinkVehicle(AutopilotCommands):
             self._target = p.copy()
             self.mode = VehicleMode.HOLD
 
-    def _failsafe(self, why: str, action: str) -> None:
+    def _failsafe(self, why: str, action: str, pause: bool = False) -> None:
         if self.flight_mode == action:
             return
         logger.warning("vehicle %d: %s: %s", self.config.system_id, why, action)
         self.failsafe_landings += action in ("LAND", "RTL")
-        self._enter_mode(action, pause=not self.px4 and action == "LAND")
+        self._enter_mode(action, pause=pause and action == "LAND")
 
     # ---- modes -------------------------------------------------------------------------------------
 
