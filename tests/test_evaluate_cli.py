@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cli_fixtures import in_process
@@ -92,3 +93,157 @@ def test_bad_config_value_names_the_field(tmp_path, capsys):
     rc, _, err = in_process(capsys, "evaluate", "--config", str(bad), "--episodes", "1", "--no-progress")
     assert rc == 2 and "Traceback" not in err
     assert "spec.team.n_pursuers" in err and err.startswith("swarm-train evaluate: error:")
+
+
+# ---- the split collisions, the held-out suite, user evaders, several runs --------------------------------
+
+SPLIT = ["teammate_contacts_per_episode", "team_obstacle_contacts_per_episode", "evader_contacts_per_episode"]
+
+
+def _check_split(doc: dict) -> None:
+    assert doc["collisions_per_episode"] == pytest.approx(sum(doc[k] for k in SPLIT))
+    assert doc["team_contacts_per_episode"] == pytest.approx(doc[SPLIT[0]] + doc[SPLIT[1]])
+
+
+def test_classical_vs_the_suite_reports_each_kind_and_their_mean(tmp_path, capsys, monkeypatch):
+    from training.evader_suite import SUITE
+    monkeypatch.chdir(ROOT)
+    out, md = tmp_path / "suite.json", tmp_path / "suite.md"
+    rc, stdout, err = in_process(capsys, "evaluate", "--policy", "classical", "--evader", "suite", "--episodes", "2",
+                                 "--n-envs", "2", "--seed", "4", "--json", str(out), "--md", str(md), "--no-progress")
+    assert rc == 0, err
+    doc = json.loads(out.read_text())
+    assert set(doc) == {*SUITE, "suite_mean"}
+    for kind in SUITE:
+        _check_metrics(doc[kind], 2)
+        _check_split(doc[kind])
+        assert doc[kind]["evader"] == f"suite:{kind}"
+    mean = doc["suite_mean"]
+    assert mean["episodes"] == 2 * len(SUITE)
+    assert mean["mean_min_dist"] == pytest.approx(np.mean([doc[k]["mean_min_dist"] for k in SUITE]))
+    assert "classical vs suite mean" in stdout and "team-obstacle contacts" in stdout
+    assert "| teammate_contacts_per_episode |" in md.read_text()
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # written via a temporary file
+
+
+def test_one_suite_kind_gives_a_flat_document(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    out = tmp_path / "w.json"
+    rc, _, err = in_process(capsys, "evaluate", "--evader", "suite:wanderer", "--episodes", "2", "--n-envs", "2",
+                            "--json", str(out), "--no-progress")
+    assert rc == 0, err
+    doc = json.loads(out.read_text())
+    _check_metrics(doc, 2)
+    assert doc["evader"] == "suite:wanderer" and doc["policy"] == "classical"
+
+
+USER_EVADER = '''
+import numpy as np
+
+class Circling:
+    """Every evader flies a circle; records the seed it was built with."""
+    def __init__(self, seed=None):
+        self.seed = seed
+        self.t = 0
+
+    def act(self, obs, env):
+        self.t += 1
+        a = np.zeros((obs.shape[0], env.n_agents, 2))
+        a[:, env.spec.team.n_team:] = [np.cos(0.2 * self.t), np.sin(0.2 * self.t)]
+        return a
+
+class WrongShape:
+    def act(self, obs, env):
+        return np.zeros((obs.shape[0], 2))
+
+class NoAct:
+    pass
+'''
+
+
+def test_a_users_evader_class_from_a_file_or_a_module(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    f = tmp_path / "my_evaders.py"
+    f.write_text(USER_EVADER)
+    docs = {}
+    for spec in (f"{f}:Circling", "my_evaders:Circling"):
+        monkeypatch.syspath_prepend(str(tmp_path))
+        out = tmp_path / f"{len(docs)}.json"
+        rc, stdout, err = in_process(capsys, "evaluate", "--evader", spec, "--episodes", "2", "--n-envs", "2",
+                                     "--seed", "2", "--json", str(out), "--no-progress")
+        assert rc == 0, err
+        docs[spec] = json.loads(out.read_text())
+        _check_metrics(docs[spec], 2)
+        assert docs[spec]["evader"] == spec and spec in stdout
+    a, b = docs.values()
+    assert a["mean_min_dist"] == b["mean_min_dist"]  # the same class either way
+    rc, _, err = in_process(capsys, "evaluate", "--evader", "scripted", "--episodes", "2", "--n-envs", "2",
+                            "--seed", "2", "--json", str(tmp_path / "s.json"), "--no-progress")
+    assert json.loads((tmp_path / "s.json").read_text())["mean_min_dist"] != a["mean_min_dist"]
+
+
+@pytest.mark.parametrize("spec, needle", [
+    ("{d}/nothere.py:X", "no file"),
+    ("{d}/my_evaders.py:Missing", "has no 'Missing'"),
+    ("{d}/my_evaders.py:NoAct", "has no act(obs, env) method"),
+    ("{d}/my_evaders.py:WrongShape", "act returned shape"),
+    ("no_such_module_xyz:X", "cannot import 'no_such_module_xyz'"),
+    ("fleeing", "is not an evader"),
+    ("suite:nope", "unknown suite kind nope"),
+    ("learned", "needs the co-trained evaders"),
+])
+def test_bad_evader_specs_exit_2_with_one_line_naming_the_option(tmp_path, capsys, monkeypatch, spec, needle):
+    monkeypatch.chdir(ROOT)
+    (tmp_path / "my_evaders.py").write_text(USER_EVADER)
+    value = spec.format(d=tmp_path)
+    rc, _, err = in_process(capsys, "evaluate", "--evader", value, "--episodes", "1", "--n-envs", "1",
+                            "--no-progress")
+    assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert needle in err and "--evader" in err and value in err
+
+
+def test_models_vs_both_keeps_its_layout_with_the_split(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    out = tmp_path / "both.json"
+    rc, stdout, err = in_process(capsys, "evaluate", "--models", "models/role_based", "--evader", "both",
+                                 "--episodes", "2", "--n-envs", "2", "--json", str(out), "--no-progress")
+    assert rc == 0, err
+    doc = json.loads(out.read_text())
+    assert set(doc) == {"learned", "scripted"}
+    for kind in doc:
+        _check_metrics(doc[kind], 2)
+        _check_split(doc[kind])
+        _check_split(doc[kind]["classical"])
+    assert "ours vs learned" in stdout and "classical vs scripted" in stdout
+
+
+def test_several_runs_give_mean_and_min_max_beside_the_classical_team(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    out, md = tmp_path / "agg.json", tmp_path / "agg.md"
+    rc, stdout, err = in_process(capsys, "evaluate", "--models", "models/role_based", "--models",
+                                 "models/role_based_int*", "--evader", "scripted", "--episodes", "2", "--n-envs", "2",
+                                 "--seed", "1", "--json", str(out), "--md", str(md), "--no-progress")
+    assert rc == 0, err
+    doc = json.loads(out.read_text())
+    assert doc["sources"] == ["models/role_based", "models/role_based_int8"]
+    e = doc["evaders"]["scripted"]
+    assert len(e["runs"]) == 2
+    for k in ("mean_min_dist", "tracking_rate", *SPLIT):
+        vals = [r[k] for r in e["runs"]]
+        assert e["min"][k] == min(vals) and e["max"][k] == max(vals)
+        assert e["mean"][k] == pytest.approx(np.mean(vals))
+    # the classical team ran once on the same evaders and seeds: the same as evaluating it alone
+    single = tmp_path / "cl.json"
+    in_process(capsys, "evaluate", "--evader", "scripted", "--episodes", "2", "--n-envs", "2", "--seed", "1",
+               "--json", str(single), "--no-progress")
+    assert e["classical"]["mean_min_dist"] == json.loads(single.read_text())["mean_min_dist"]
+    text = md.read_text()
+    assert text == stdout[:len(text)]
+    assert "learned beats classical (runs of 2)" in text and "| scripted |" in text
+    assert f"{e['mean']['mean_min_dist']:.3f} [{e['min']['mean_min_dist']:.3f}-{e['max']['mean_min_dist']:.3f}]" in text
+
+
+def test_a_glob_that_matches_nothing_is_an_error(capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    rc, _, err = in_process(capsys, "evaluate", "--run", "runs/none_such_*", "--no-progress")
+    assert rc == 2 and "matches no folder" in err
