@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from groundstation.cf_firmware import LIPO_CHARGE_CURVE_V, lipo_state_of_charge
 from runtime.spec import SpecError, from_mapping, load_toml
 
 if TYPE_CHECKING:  # only for annotations: positioning works with any link that publishes telemetry
@@ -31,10 +32,18 @@ if TYPE_CHECKING:  # only for annotations: positioning works with any link that 
 
 log = logging.getLogger(__name__)
 
-BATTERY_EMPTY_V = 3.0
-"""Voltage [V] of an empty 1S LiPo (Crazyflie), for ``DroneState.battery_fraction``."""
-BATTERY_FULL_V = 4.2
+BATTERY_EMPTY_V = LIPO_CHARGE_CURVE_V[0]
+"""Voltage [V] of an empty 1S LiPo (Crazyflie)."""
+BATTERY_FULL_V = LIPO_CHARGE_CURVE_V[-1]
 """Voltage [V] of a full 1S LiPo."""
+
+
+def battery_fraction(voltage: float) -> float:
+    """State of charge [0..1] from a battery voltage [V] by the LiPo charge curve of the Crazyflie firmware
+    (``cf_firmware.LIPO_CHARGE_CURVE_V``), not a straight line: a LiPo spends most of its charge between
+    3.8 and 4.1 V and drops through its knee below 10 %. Non-finite voltages read as empty. A voltage under
+    load reads lower than at rest; compare drones in the same state (all flying, or all on the ground)."""
+    return lipo_state_of_charge(voltage)
 
 
 @dataclass(frozen=True)
@@ -57,10 +66,8 @@ class DroneState:
 
     @property
     def battery_fraction(self) -> float:
-        """State of charge estimated linearly from the voltage between 3.0 V and 4.2 V, clipped to [0, 1]."""
-        if not math.isfinite(self.battery):
-            return 0.0
-        return min(max((self.battery - BATTERY_EMPTY_V) / (BATTERY_FULL_V - BATTERY_EMPTY_V), 0.0), 1.0)
+        """State of charge [0..1] from the voltage (``battery_fraction``)."""
+        return battery_fraction(self.battery)
 
     def age(self, now: float) -> float:
         return now - self.t

@@ -13,11 +13,21 @@ The pure functions (``clamp_position``, ``clamp_path``, ``limit_velocity``, ``ch
 geometry; ``FenceGuard`` is the per-drone hold-then-land state machine; ``Geofence`` wraps both and is the
 one object that setpoints go through.
 
-Velocity rule: the drone is assumed to track a commanded velocity within a control period and to brake at
-``max_decel`` after it. A velocity ``v`` along unit direction ``u`` from position ``p`` is allowed when the
-straight path of length ``|v| dt + |v|^2 / (2 max_decel)`` stays in the safe set; otherwise its speed is cut
-to the largest that does. Starting in the safe set, a drone flown only by limited velocities therefore never
-leaves it, whatever is commanded. The vehicle's own tracking error is what ``margin`` is for.
+Velocity rule: a velocity ``v`` along unit direction ``u`` from position ``p`` is allowed when the straight
+path from ``p`` along ``u`` stays in the safe set for the longer of two futures, otherwise its speed is cut
+to the largest that does:
+
+* the ground station keeps commanding: the drone flies ``v`` for a control period ``dt`` and then brakes
+  at ``max_decel``: ``|v| dt + |v|^2 / (2 max_decel)``;
+* the ground station falls silent right after this setpoint: the Crazyflie flies it until its setpoint
+  watchdog levels it out (0.5 s), then coasts with horizontal control off until the motors stop at 2 s
+  (``crazyflie-firmware`` ``supervisor.c``; ``cf_firmware.WDT_SHUTDOWN_S``). Drag only slows the coast and a
+  velocity-mode height keeps its speed, so ``|v| coast_time`` bounds the path: horizontally the coast stays
+  on the ray, vertically within ``|v_z| coast_time``, and the safe set is a prism, so the straight segment
+  of that length decides.
+
+Starting in the safe set, a drone flown only by limited velocities therefore never leaves it, whatever is
+commanded and whenever the commands stop. The vehicle's own tracking error is what ``margin`` is for.
 """
 from __future__ import annotations
 
@@ -32,6 +42,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from groundstation.cf_firmware import WDT_SHUTDOWN_S
 from runtime.spec import SpecError, SwarmSpec, from_mapping, load_toml
 
 log = logging.getLogger(__name__)
@@ -91,13 +102,17 @@ class FenceConfig:
     ``v^2 / (2 max_decel)`` that the velocity limit keeps free in front of the drone."""
     hold_time: float = 1.0
     """Time [s] a drone measured outside the fence hovers (holds) before it is landed."""
+    coast_time: float = WDT_SHUTDOWN_S
+    """Longest time [s] a drone may keep moving at its last commanded speed after the ground station falls
+    silent; default the Crazyflie's setpoint-watchdog shutdown (0.5 s on the setpoint, then levelled and
+    coasting, motors off at 2 s). Sets the second stopping distance ``|v| coast_time`` of the velocity limit."""
 
     def __post_init__(self) -> None:
-        for name in ("z_min", "z_max", "margin", "max_speed", "max_decel", "hold_time"):
+        for name in ("z_min", "z_max", "margin", "max_speed", "max_decel", "hold_time", "coast_time"):
             v = getattr(self, name)
             if not math.isfinite(v):
                 raise SpecError(f"fence.{name}: must be finite, got {v!r}")
-        for name in ("max_speed", "max_decel"):
+        for name in ("max_speed", "max_decel", "coast_time"):
             if not getattr(self, name) > 0:
                 raise SpecError(f"fence.{name}: must be > 0, got {getattr(self, name)!r}")
         for name in ("margin", "hold_time", "z_min"):
@@ -440,19 +455,21 @@ def free_distance(fence: FenceConfig, p: np.ndarray, u: np.ndarray) -> float:
     return max(t, 0.0)
 
 
-def max_safe_speed(distance: float, dt: float, max_decel: float) -> float:
-    """Largest speed s [m/s] with ``s dt + s^2 / (2 max_decel) <= distance``."""
+def max_safe_speed(distance: float, dt: float, max_decel: float, coast_time: float = 0.0) -> float:
+    """Largest speed s [m/s] with ``s dt + s^2 / (2 max_decel) <= distance`` and ``s coast_time <= distance``."""
     if distance <= 0:
         return 0.0
     if math.isinf(distance):
         return math.inf
-    return max_decel * (-dt + math.sqrt(dt * dt + 2.0 * distance / max_decel))
+    brake = max_decel * (-dt + math.sqrt(dt * dt + 2.0 * distance / max_decel))
+    return min(brake, distance / coast_time) if coast_time > 0 else brake
 
 
 def limit_velocity(fence: FenceConfig, position: Sequence[float] | np.ndarray | None,
                    v: Sequence[float] | np.ndarray | None, dt: float) -> np.ndarray:
     """Velocity setpoint ``v`` [m/s] cut so that a drone at ``position`` [m] flying it for ``dt`` [s] and then
-    braking at ``fence.max_decel`` stays in the safe set.
+    braking at ``fence.max_decel``, or flying and coasting on it for ``fence.coast_time``, stays in the safe
+    set.
 
     The direction is kept and only the speed is reduced (to at most ``fence.max_speed``). From a position
     outside the safe set only the part of ``v`` that heads for the nearest safe point is kept, slow enough to
@@ -471,7 +488,7 @@ def limit_velocity(fence: FenceConfig, position: Sequence[float] | np.ndarray | 
     speed = min(scale * float(np.linalg.norm(w / scale)), fence.max_speed)
     if in_safe_set(fence, p):
         d = free_distance(fence, p, u) - _BRAKE_SLACK
-        s = min(speed, max_safe_speed(d, dt, fence.max_decel))
+        s = min(speed, max_safe_speed(d, dt, fence.max_decel, fence.coast_time))
         return u * s if s > 0 else zero
     p[:2] = np.clip(p[:2], g.lo, g.hi)
     p[2] = min(max(p[2], -_FAR), _FAR)
@@ -481,7 +498,7 @@ def limit_velocity(fence: FenceConfig, position: Sequence[float] | np.ndarray | 
     if dist <= _TOL:
         return zero
     uq = to_q / dist
-    s = min(speed * float(u @ uq), max_safe_speed(dist, dt, fence.max_decel))
+    s = min(speed * float(u @ uq), max_safe_speed(dist, dt, fence.max_decel, fence.coast_time))
     return uq * s if s > 0 else zero
 
 

@@ -99,9 +99,9 @@ def test_attach_follows_a_links_telemetry_and_battery_fraction() -> None:
     link.latest = Sample(t=50.0, position=(0.0, 0.0, 0.0), battery=4.2)
     tr.attach("cf2", link)
     assert tr.get("cf2").battery_fraction == 1.0
-    link.publish(Sample(t=50.05, position=(0.5, 0.0, 1.0), battery=3.6))
+    link.publish(Sample(t=50.05, position=(0.5, 0.0, 1.0), battery=3.92))
     assert tr.get("cf2").position == (0.5, 0.0, 1.0)
-    assert tr.get("cf2").battery_fraction == pytest.approx(0.5)
+    assert tr.get("cf2").battery_fraction == pytest.approx(0.5)  # the LiPo curve's 50 % point
     tr.forget("cf2")
     assert link.callbacks == [] and tr.get("cf2") is None
 
@@ -175,3 +175,17 @@ def test_draw_layout_puts_fence_keepouts_and_anchors_on_the_axes(tmp_path: Path)
     fig.savefig(tmp_path / "layout.png")
     plt.close(fig)
     assert (tmp_path / "layout.png").stat().st_size > 1000
+
+
+def test_battery_fraction_follows_the_lipo_curve_with_its_knee() -> None:
+    from groundstation.cf_firmware import LIPO_CHARGE_CURVE_V, lipo_resting_voltage
+    from groundstation.positioning import battery_fraction
+
+    assert battery_fraction(4.2) == 1.0 and battery_fraction(3.0) == 0.0 and battery_fraction(float("nan")) == 0.0
+    assert battery_fraction(2.5) == 0.0 and battery_fraction(4.4) == 1.0
+    for k, v in enumerate(LIPO_CHARGE_CURVE_V):  # the inverse of the simulator's discharge curve
+        assert battery_fraction(v) == pytest.approx(k / 10)
+        assert lipo_resting_voltage(k / 10) == pytest.approx(v)
+    # the knee: the last 10 % of the charge spans more voltage than the 80 % above it
+    assert LIPO_CHARGE_CURVE_V[1] - LIPO_CHARGE_CURVE_V[0] > LIPO_CHARGE_CURVE_V[9] - LIPO_CHARGE_CURVE_V[1]
+    assert battery_fraction(3.6) < 0.1  # linear in 3.0-4.2 V it would read 0.5

@@ -47,7 +47,8 @@ def fences(draw: st.DrawFn) -> FenceConfig:
     try:
         return FenceConfig(**shape, keep_out=keep, margin=draw(st.floats(0.0, 0.4)),
                            z_min=draw(st.floats(0.0, 0.5)), z_max=draw(st.floats(1.5, 3.0)),
-                           max_speed=draw(st.floats(0.2, 3.0)), max_decel=draw(st.floats(0.5, 5.0)))
+                           max_speed=draw(st.floats(0.2, 3.0)), max_decel=draw(st.floats(0.5, 5.0)),
+                           coast_time=draw(st.sampled_from([2.0, 0.5, 3.0, 1e-3])))
     except SpecError:
         assume(False)
         raise
@@ -131,14 +132,21 @@ def test_non_finite_setpoints_fall_back() -> None:
 
 
 def test_velocity_toward_a_wall_slows_to_the_stopping_distance() -> None:
+    from groundstation.cf_firmware import WDT_SHUTDOWN_S
+
     f = FenceConfig(max_speed=1.5, max_decel=2.0)
+    assert f.coast_time == WDT_SHUTDOWN_S == 2.0  # the Crazyflie's setpoint watchdog: motors off at 2 s
     far = limit_velocity(f, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), 0.1)
     np.testing.assert_allclose(far, (1.0, 0.0, 0.0))
     fast = limit_velocity(f, (0.0, 0.0, 1.0), (30.0, 0.0, 0.0), 0.1)
-    np.testing.assert_allclose(fast, (1.5, 0.0, 0.0))
+    np.testing.assert_allclose(fast, (2.8 / 2.0, 0.0, 0.0), atol=1e-5)  # 2.8 m free, coasting for 2 s
     near = limit_velocity(f, (2.6, 0.0, 1.0), (1.0, 0.0, 0.0), 0.1)   # 0.2 m to the safe edge
     s = near[0]
-    assert 0 < s < 1.0 and s * 0.1 + s * s / (2 * 2.0) <= 0.2 + 1e-9
+    assert 0 < s < 1.0 and s * 0.1 + s * s / (2 * 2.0) <= 0.2 + 1e-9 and s * 2.0 <= 0.2 + 1e-9
+    assert s == pytest.approx(0.1, abs=1e-5)  # the coast is the longer path here
+    braking_only = FenceConfig(max_speed=1.5, max_decel=2.0, coast_time=1e-6)
+    sb = limit_velocity(braking_only, (2.6, 0.0, 1.0), (1.0, 0.0, 0.0), 0.1)[0]
+    assert sb > 2 * s and sb * 0.1 + sb * sb / (2 * 2.0) == pytest.approx(0.2, abs=1e-5)
     away = limit_velocity(f, (2.8, 0.0, 1.0), (-1.0, 0.0, 0.0), 0.1)
     np.testing.assert_allclose(away, (-1.0, 0.0, 0.0))
 
@@ -186,6 +194,29 @@ def test_limited_velocities_never_cross_the_fence(fence: FenceConfig, start: tup
             stop = nxt + w / speed * speed ** 2 / (2 * fence.max_decel)
             assert _segment_safe(fence, nxt, stop)
         p = nxt
+
+
+@PROPS
+@given(fence=fences(), start=sane_point, vs=st.lists(point, min_size=1, max_size=15),
+       dt=st.floats(0.01, 0.5), silent_after=st.integers(0, 14), drag=st.floats(0.0, 1.0))
+def test_a_drone_coasting_after_its_last_setpoint_stays_inside(fence: FenceConfig, start: tuple, vs: list,
+                                                                dt: float, silent_after: int, drag: float) -> None:
+    """The ground station falls silent after any setpoint: the Crazyflie flies it for 0.5 s, then levels
+    out with x and y control off and coasts (slowed only by drag, its height in velocity mode going on) until
+    the motors stop at ``coast_time``. The whole coast stays in the safe set."""
+    p = clamp_position(fence, start)
+    for k, v in enumerate(vs):
+        w = limit_velocity(fence, p, v, dt)
+        if k == silent_after or k == len(vs) - 1:
+            t, step, q, vel = 0.0, fence.coast_time / 50, p.copy(), w.copy()
+            while t < fence.coast_time - 1e-12:
+                if t >= 0.5:
+                    vel[:2] *= math.exp(-drag * step)
+                q = q + vel * step
+                t += step
+                assert in_safe_set(fence, q, TOL)
+            return
+        p = p + w * dt
 
 
 @settings(max_examples=100, deadline=None)
