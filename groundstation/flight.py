@@ -60,8 +60,9 @@ import numpy as np
 
 from groundstation import roles as roles_mod
 from groundstation.link import FlightState, Link, LinkError, Telemetry
-from groundstation.positioning import BATTERY_EMPTY_V, BATTERY_FULL_V, PositionTracker
+from groundstation.positioning import PositionTracker, battery_fraction
 from groundstation.safety import FenceConfig, Geofence, GuardState, in_safe_set, limit_velocity
+from groundstation.separation import JointFilter, Limits, SeparationConfig, Snapshot
 from runtime.spec import Role, SpecError, from_mapping, load_toml
 
 log = logging.getLogger(__name__)
@@ -216,13 +217,6 @@ class FlightEvent:
     kind: str
     detail: str = ""
     data: Mapping[str, Any] = field(default_factory=dict)
-
-
-def battery_fraction(voltage: float) -> float:
-    """Linear state of charge from the voltage (``positioning.DroneState.battery_fraction``'s rule)."""
-    if not math.isfinite(voltage):
-        return 0.0
-    return min(max((voltage - BATTERY_EMPTY_V) / (BATTERY_FULL_V - BATTERY_EMPTY_V), 0.0), 1.0)
 
 
 class FlightSession:
