@@ -6,9 +6,18 @@ SITL; cflib 0.1.32+), ``usb://0``.
 Telemetry comes from two log blocks: a fast one (position, velocity, ``supervisor.info``: 26 bytes, the
 most one CRTP log packet carries) every ``period_ms`` and a slow one (battery, RSSI, position variance)
 every ``aux_period_ms``; samples are published on the fast block. Streamed setpoints go through
-``Commander``, takeoff and landing through ``HighLevelCommander`` (after ``notify_setpoint_stop`` when
-setpoints were streamed, so the onboard planner may take over), the emergency stop through the supervisor
-port (cflib falls back to the localization port on firmware older than protocol 12).
+``Commander``, takeoff and landing through ``HighLevelCommander``, each followed by ``notify_setpoint_stop``
+(every time, retries included: a streamed setpoint has priority over the onboard planner and stops it, and
+only that hand-over lets the planner's setpoints through, ``commander.c``), the emergency stop through the
+supervisor port (cflib falls back to the localization port on firmware older than protocol 12).
+
+No drone flies uncommanded: before the first command that can make it fly, the link arms the firmware's
+emergency-stop watchdog and then feeds it every ``ESTOP_FEED_PERIOD_S`` from its own thread. When the ground
+station dies, freezes or loses the radio, the packets stop and the firmware cuts the motors and locks within
+``cf_firmware.ESTOP_WATCHDOG_S`` (1 s) in every phase, takeoff and landing included (``supervisor.c``
+checkEmergencyStopWatchdog). The watchdog stays armed until the drone is rebooted: after a flight the
+ground station closes its links and the drones, already landed, lock on the ground (a landed one once the
+supervisor's 3 s landing timeout has passed). Reboot them before the next flight.
 
 cflib's UDP and radio drivers do not report a silent peer: ``link_lost`` is judged from telemetry
 silence (``link_loss_timeout``, default 0.25 s) and from cflib's own connection-lost callback.
@@ -25,6 +34,7 @@ import cflib.crtp
 from cflib.crazyflie import Crazyflie
 from cflib.crazyflie.log import LogConfig
 
+from groundstation.cf_firmware import ESTOP_WATCHDOG_S
 from groundstation.link import FlightState, Link, LinkError, LinkStats, Telemetry
 
 logger = logging.getLogger(__name__)
@@ -32,7 +42,12 @@ logger = logging.getLogger(__name__)
 FAST_VARS = ("stateEstimate.x", "stateEstimate.y", "stateEstimate.z",
              "stateEstimate.vx", "stateEstimate.vy", "stateEstimate.vz", "supervisor.info")
 NOTIFY_STOP_VALID_MS = 200
-"""How long the last streamed setpoint stays valid when handing over to the onboard planner [ms]."""
+"""The notify-setpoint-stop packet's remain-valid field [ms]; firmware since 2023 ignores it and hands over at
+once (``crtp_commander_generic.c`` notifySetpointsStopDecoder), older firmware kept the last streamed
+setpoint valid this long."""
+ESTOP_FEED_PERIOD_S = ESTOP_WATCHDOG_S / 10.0
+"""Interval of the emergency-stop watchdog packets [s]: ten per timeout, so that a lost packet or a short
+stall of the ground station does not drop the drone."""
 SLOW_VARS = ("pm.vbat", "radio.rssi", "kalman.varPX", "kalman.varPY", "kalman.varPZ")
 
 _drivers_lock = threading.Lock()
@@ -81,8 +96,9 @@ class CflibLink(Link):
         self.link_loss_timeout = link_loss_timeout
         self._sent = 0
         self._received = 0
-        self._streaming = False
         self._closed = False
+        self._watchdog: threading.Thread | None = None
+        self._watchdog_stop = threading.Event()
         self._connection_lost = False
         self._slow: dict[str, float] = {}
         self._radio_quality: float | None = None
@@ -209,30 +225,58 @@ class CflibLink(Link):
 
     def send_velocity(self, vx: float, vy: float, vz: float, yaw_rate: float = 0.0) -> None:
         self._check_open()
-        self._streaming = True
+        self._arm_watchdog()
         self._cf.commander.send_velocity_world_setpoint(vx, vy, vz, math.degrees(yaw_rate))
 
     def send_position(self, x: float, y: float, z: float, yaw: float = 0.0) -> None:
         self._check_open()
-        self._streaming = True
+        self._arm_watchdog()
         self._cf.commander.send_position_setpoint(x, y, z, math.degrees(yaw))
 
     def _hand_over_to_planner(self) -> None:
-        if self._streaming:
-            # Keep the last streamed setpoint valid a little longer than the next packet takes to arrive,
-            # or the firmware's watchdog sees a 2 s old setpoint and locks before the planner takes over.
-            self._cf.commander.send_notify_setpoint_stop(remain_valid_milliseconds=NOTIFY_STOP_VALID_MS)
-            self._streaming = False
+        """Sent after every high-level command, retries included. A streamed setpoint outranks the planner
+        and stops it (``commander.c`` commanderSetSetpoint); until the priority is relaxed the planner's
+        setpoints are dropped and the last streamed one ages into the setpoint watchdog. The command goes
+        first: relaxed with an idle planner, the firmware takes the planner's null setpoint (motors off)."""
+        self._cf.commander.send_notify_setpoint_stop(remain_valid_milliseconds=NOTIFY_STOP_VALID_MS)
 
     def takeoff(self, height: float, duration: float) -> None:
         self._check_open()
-        self._hand_over_to_planner()
+        self._arm_watchdog()
         self._cf.high_level_commander.takeoff(height, duration)
+        self._hand_over_to_planner()
 
     def land(self, duration: float, height: float = 0.0) -> None:
         self._check_open()
-        self._hand_over_to_planner()
+        latest = self.telemetry()
+        if latest is not None and latest.flight_state is FlightState.FLYING:
+            self._arm_watchdog()  # a drone found in the air is put under the watchdog as well
         self._cf.high_level_commander.land(height, duration)
+        self._hand_over_to_planner()
+
+    # ---- the emergency-stop watchdog ---------------------------------------------------------------
+
+    def _arm_watchdog(self) -> None:
+        if self._watchdog is not None:
+            return
+        self._cf.supervisor.send_emergency_stop_watchdog()  # armed before the command that follows
+        self._watchdog = threading.Thread(target=self._feed_watchdog, name=f"estop watchdog {self.uri}",
+                                          daemon=True)
+        self._watchdog.start()
+        logger.info("%s: emergency-stop watchdog armed (%.1f s): the drone stops its motors if this ground "
+                    "station goes silent", self.uri, ESTOP_WATCHDOG_S)
+
+    def _feed_watchdog(self) -> None:
+        while not self._watchdog_stop.wait(ESTOP_FEED_PERIOD_S):
+            try:
+                self._cf.supervisor.send_emergency_stop_watchdog()
+            except Exception as exc:  # a failing driver must not kill the thread silently
+                logger.warning("%s: emergency-stop watchdog packet not sent: %s", self.uri, exc)
+
+    @property
+    def watchdog_armed(self) -> bool:
+        """Whether this link has armed the drone's emergency-stop watchdog (it then feeds it until closed)."""
+        return self._watchdog is not None
 
     def emergency_stop(self) -> None:
         self._check_open()
@@ -247,6 +291,11 @@ class CflibLink(Link):
         if self._closed:
             return
         self._closed = True
+        self._watchdog_stop.set()
+        if self._watchdog is not None:
+            self._watchdog.join(timeout=1.0)
+            logger.info("%s: emergency-stop watchdog no longer fed: the drone locks (reboot before flying "
+                        "again)", self.uri)
         latest = self.telemetry()
         if latest is not None and latest.flight_state is FlightState.FLYING and not self.link_lost:
             logger.warning("%s: closing while flying; cflib sends a zero-thrust setpoint on close, so the "

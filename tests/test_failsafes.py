@@ -67,7 +67,8 @@ def flight(tmp_path_factory):
                     # four failures, one per drone
                     sims.kill_link(ids.index(cut))
                     out["cut_at"] = time.monotonic()
-                    sims.model.charge_as[ids.index(drained)] = 0.2 * sims.model.params.battery_capacity_as
+                    # 3 % left: past the LiPo curve's knee, the voltage under load falls below low_battery_v
+                    sims.model.charge_as[ids.index(drained)] = 0.03 * sims.model.params.battery_capacity_as
                     session.tracker.detach(stale)
                     out["stale_at"] = time.monotonic()
                     pilot.set_policy(faulty_actor, OnnxPolicy(nan_models / f"{faulty_actor}.onnx", spec=spec))

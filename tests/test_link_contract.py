@@ -121,7 +121,7 @@ def test_takeoff_velocity_and_position_setpoints_move_it_then_it_lands(peer_link
     assert np.allclose(link.telemetry().position, target, atol=0.15)  # the estimate, with positioning noise
     link.land(0.8)
     assert _wait(lambda: link.telemetry().planner_active, 0.5)
-    assert _wait(lambda: _state(link) in ON_GROUND, 2.0)
+    assert _wait(lambda: _state(link) in ON_GROUND, 5.0)  # a Crazyflie reports landed 2 s after touchdown
     assert _wait(lambda: peer.truth()[2] == 0.0, 0.5)
     assert not link.link_lost
 
