@@ -503,6 +503,8 @@ class MavlinkLink(Link):
         except KeyError:
             raise LinkError(self.uri, f"unknown {self.autopilot.value} mode {name!r}",
                             "use one of " + ", ".join(PX4_MODES if self.autopilot is Autopilot.PX4 else COPTER_MODES))
+        if name != "OFFBOARD":
+            self._want_offboard = False  # a mode chosen by the caller is kept, not overridden by the stream
         self._command_ok(self._mav.MAV_CMD_DO_SET_MODE, f"mode {name}", *params)
 
     def _request_streams(self) -> None:
