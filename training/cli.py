@@ -10,7 +10,6 @@ import argparse
 import json
 import logging
 import sys
-from pathlib import Path
 from typing import Any, Callable
 
 from runtime.spec import SpecError
@@ -119,6 +118,9 @@ def _evaluate_baseline(args: argparse.Namespace) -> int:
                "eval_seed_offset": EVAL_SEED_OFFSET}
         _write_json(args.json, doc)
         print(f"wrote {args.json}")
+    if args.md:
+        _write_md(args.md, f"{cfg.name}: {label}, {metrics['episodes']} episodes (evaluation seed {args.seed}, seed "
+                           f"offset {EVAL_SEED_OFFSET})", {label: metrics}, PAPER.get(cfg.name))
     if args.plot:
         _plot(cfg, make_policy(args.policy, seed=args.seed, evaders=args.evaders), args.seed, args.plot,
               f"{label}, {cfg.name}, seed {args.seed}")
@@ -129,8 +131,8 @@ def _evaluate_baseline_vs(args: argparse.Namespace, cfg) -> int:
     """``--policy P --evader SPEC`` without a run: the baseline team against each kind SPEC stands for."""
     from training.baselines import TeamPolicy, make_policy
     from training.evader_spec import SUITE_MEAN, expand, label, make_evaders
-    from training.evaluate import EVAL_SEED_OFFSET, PAPER, evaluate, format_table, write_text_atomic
-    from training.learned_eval import markdown_table, with_suite_mean
+    from training.evaluate import EVAL_SEED_OFFSET, PAPER, evaluate, format_table
+    from training.learned_eval import with_suite_mean
 
     kinds = expand(args.evader)
     pursuers = make_policy(args.policy, seed=args.seed).pursuer_team
@@ -151,13 +153,8 @@ def _evaluate_baseline_vs(args: argparse.Namespace, cfg) -> int:
         _write_json(args.json, results[label(kinds[0])] if len(kinds) == 1 else results)
         print(f"wrote {args.json}")
     if args.md:
-        head = (f"{cfg.name}: {args.policy} pursuer team, {args.episodes} held-out episodes per column "
-                f"(evaluation seed {args.seed}, seed offset {EVAL_SEED_OFFSET})\n\n")
-        try:
-            write_text_atomic(args.md, head + markdown_table(cols, PAPER.get(cfg.name)))
-        except OSError as exc:
-            raise UsageError(f"cannot write {args.md!r}: {exc.strerror or exc}") from None
-        print(f"wrote {args.md}")
+        _write_md(args.md, f"{cfg.name}: {args.policy} pursuer team, {args.episodes} held-out episodes per column "
+                           f"(evaluation seed {args.seed}, seed offset {EVAL_SEED_OFFSET})", cols, PAPER.get(cfg.name))
     if args.plot:
         _plot(cfg, TeamPolicy(pursuers, make_evaders(kinds[0], args.seed)), args.seed, args.plot,
               f"{args.policy} vs {label(kinds[0])}, {cfg.name}, seed {args.seed}")
@@ -179,8 +176,9 @@ def add_plot(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0, metavar="S", help="episode seed (default 0)")
     p.add_argument("--out", metavar="PATH", help="PNG file to write (a folder with --run; default RUN/plots/)")
     p.add_argument("--run", metavar="RUN", help="a training run folder: plot its curves and its learned team")
-    p.add_argument("--evader", choices=("learned", "scripted"), default="learned",
-                   help="with --run: the co-trained evaders ('learned', default) or the scripted fleeing ones")
+    p.add_argument("--evader", metavar="SPEC", default="learned",
+                   help="with --run: the evaders to draw against, as for `evaluate --evader` (one kind: 'learned', "
+                        "default; 'scripted'; 'suite:KIND'; 'module:Class'; 'path/to/file.py:Class')")
     p.set_defaults(func=cmd_plot)
 
 
@@ -216,6 +214,16 @@ def _write_json(path: str, doc: dict) -> None:
         write_text_atomic(path, json.dumps(doc, indent=2, sort_keys=True) + "\n")
     except OSError as exc:
         raise UsageError(f"cannot write {path!r}: {exc.strerror or exc}") from None
+
+
+def _write_md(path: str, head: str, cols: dict, paper) -> None:
+    from training.evaluate import write_text_atomic
+    from training.learned_eval import markdown_table
+    try:
+        write_text_atomic(path, head + "\n\n" + markdown_table(cols, paper))
+    except OSError as exc:
+        raise UsageError(f"cannot write {path!r}: {exc.strerror or exc}") from None
+    print(f"wrote {path}")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -7,8 +7,9 @@ Every behaviour follows the baselines' protocol (``training.baselines.Policy``):
 and reads the true world state from ``env.state`` (full information, like ``FleeingEvaders``). Each env draws
 its own parameters (speeds, periods, margins, ...) from the behaviour's seeded generator at the start of every
 episode: automatically when an env is at step 0 (a fresh or auto-reset env; ``act`` is called at every step,
-as the evaluator and the trainer do), or on request with ``resample(env_ids)``. Draws happen only at episode starts, so two evaluations with the same seed (the learned
-team's and the classical team's columns) meet evaders with the same parameters, episode for episode.
+as the evaluator and the trainer do), or on request with ``resample(env_ids)``. Draws happen only at episode
+starts, so two evaluations with the same seed (the learned team's and the classical team's columns) meet
+evaders with the same parameters, episode for episode.
 
 Held-out suite (``SUITE``; ``swarm-train evaluate --evader suite`` or ``suite:KIND[,KIND]``), never trained
 against:

@@ -293,10 +293,14 @@ def cmd_plot_run(args: Any) -> int:
         paths = plot_training_curves(run, out)
         cfg, learned, _ = load_learned(run=run)
         evader = getattr(args, "evader", "learned")
-        trace = record_episode(cfg, team(learned, evader), args.seed)
+        kinds = expand(evader)
+        if len(kinds) != 1:
+            raise LearnedModelError(f"--evader {evader!r}: plot draws one episode against one kind of evaders: "
+                                    f"give one of {kinds}")
+        trace = record_episode(cfg, team(learned, kinds[0], args.seed), args.seed)
         paths.append(plot_episode(trace, out / "episode.png",
                                   f"{cfg.name}: learned team vs {evader} evaders, held-out seed {args.seed}"))
-    except (LearnedModelError, CheckpointError) as exc:
+    except (LearnedModelError, CheckpointError, ValueError) as exc:  # EvaderSpecError too
         raise UsageError(str(exc)) from None
     for p in paths:
         print(f"wrote {p}")
