@@ -443,7 +443,8 @@ class MavlinkLink(Link):
             if event.wait(min(0.02, max(deadline - time.monotonic(), 0.0))):
                 return True
             if interruptible and self._worker.should_stop():
-                raise LinkError(self.uri, "command abandoned for a landing", "nothing to do: the landing goes on")
+                raise LinkError(self.uri, "command abandoned: a landing overtook it, or the link is closing",
+                                "nothing to do: the landing (or the close) goes on")
             if time.monotonic() >= deadline:
                 return False
 
