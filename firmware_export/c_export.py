@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_export.cgen import CSources, generate
+from firmware_export import fw_budget
+from firmware_export.cgen import DEFAULT_WEIGHTS_IN, CSources, generate
 from firmware_export.mlp_graph import ActorModel, CExportError, Dense, read_actor
 from firmware_export.observations import random_observations, recorded_observations
 from firmware_export.quantize import QDense, dequantized, float_layers, quantize_layers
@@ -48,8 +49,10 @@ class CExport:
 
 
 def export_c(model_path: str | Path, out_dir: str | Path, quant: str = "float", tanh: str = "fast",
-             spec_toml: str | Path | None = None, role: str | None = None, weights_in: str = "ccm",
-             int8_rounding: str = "gptq", calib_obs: int = CALIB_OBS) -> CExport:
+             spec_toml: str | Path | None = None, role: str | None = None, weights_in: str = DEFAULT_WEIGHTS_IN,
+             int8_rounding: str = "gptq", calib_obs: int = CALIB_OBS, check_budget: bool = True) -> CExport:
+    """Write ``policy.h``/``policy.c``; with ``check_budget`` refuse (``CExportError``, naming the fix) tables that
+    do not fit the memory the stock Crazyflie firmware leaves free (``firmware_export.fw_budget``)."""
     model = read_actor(model_path, spec_toml=spec_toml, role=role)
     if quant == "int8w":
         calib = calibration_observations(model, calib_obs) if int8_rounding == "gptq" else None
@@ -57,6 +60,8 @@ def export_c(model_path: str | Path, out_dir: str | Path, quant: str = "float", 
     else:
         qlayers = float_layers(model.layers)
     sources = generate(model, quant=quant, tanh=tanh, weights_in=weights_in, qlayers=qlayers)
+    if check_budget:
+        fw_budget.check(sources.weight_bytes, weights_in, f"{model.agent_id} ({quant})")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     header, source = out / "policy.h", out / "policy.c"

@@ -1,13 +1,21 @@
 """C99 source text for an actor: pure functions from layers and spec to strings (no file I/O here).
 
-Layout chosen for the Cortex-M4 (single-issue, 32 single-precision registers, VLDM streams consecutive
+Float layers, laid out for the Cortex-M4 (single-issue, 32 single-precision registers, VLDM streams consecutive
 floats at one cycle each): every dense layer computes ``GROUP`` output neurons at once, so each input value is
 loaded once per group and reused from a register, and the weights of a group are interleaved
-``[in][GROUP]`` so that the inner loop reads flash strictly sequentially. A final group narrower than
-``GROUP`` (the 2-wide action layer) gets its own kernel. With ``int8w`` the hidden layers' weights are int8 with
-one float scale per output neuron (products accumulate in float, scaled once per neuron) and the output layer
-stays float (``firmware_export.quantize``). All tables live in one struct, read either from flash or from a copy
-in CCM RAM made by ``swarm_policy_init`` (``WEIGHTS_IN``).
+``[in][GROUP]`` so that the inner loop reads the tables strictly sequentially. A final group narrower than
+``GROUP`` (the 2-wide action layer) gets its own kernel.
+
+int8 layers (``--quant int8w``, the CMSIS-NN q7 x q15 way, e.g. CMSIS-NN ``arm_fully_connected_mat_q7_vec_q15``):
+int8 weights with one float scale per output neuron (``firmware_export.quantize``); the layer's float input is
+quantized to q15 with one scale per vector (``max|x| / 32767``), packed two per 32-bit word; the weights are
+stored four per word in the order ``w0 w2 w1 w3`` so that ``SXTB16`` and ``SXTB16 ..., ROR #8`` give the
+sign-extended pairs ``(w0, w1)`` and ``(w2, w3)`` that ``SMLAD`` multiplies with the packed inputs ``(x0, x1)``,
+``(x2, x3)`` into an exact int32 accumulator (4 MACs in 4 single-cycle instructions); ``QGROUP`` neurons share
+each input load; then ``y = act(acc * (scale * x_scale) + bias)`` in float. The output layer stays float.
+
+All tables live in one struct, read from flash in place or from a working copy that ``swarm_policy_init`` makes
+in main SRAM or in CCM RAM (``WEIGHTS_IN``).
 """
 from __future__ import annotations
 
@@ -17,15 +25,27 @@ from dataclasses import dataclass
 import numpy as np
 
 from firmware_export.mlp_graph import ActorModel, CExportError, ModelShapeError
-from firmware_export.quantize import QDense, float_layers
+from firmware_export.quantize import Q15_MAX, QDense, float_layers
 
 GROUP = 8
 """Output neurons computed together (8 accumulators, 8 streamed weights and 1 input use 17 of 32 s-registers)."""
+QGROUP = 4
+"""int8 layers: output neurons per group (4 accumulators, 2 packed inputs, 2 weight words, a temporary and three
+loop registers: 12 of the 14 allocatable core registers)."""
+QBLOCK = 16
+"""int8 layers: inputs are zero-padded to a multiple of this (the SMLAD loop handles 16 inputs per iteration)."""
+
+INT8_MAX_INPUTS = 512
+"""Largest int8 layer input: ``512 * 127 * 32767 < 2**31``, so the int32 accumulator cannot overflow."""
 QUANTS = ("float", "int8w")
-WEIGHTS_IN = ("ccm", "flash")
-"""Where the Cortex-M4 reads the tables from: ``ccm`` copies them at ``swarm_policy_init`` from flash into the
-STM32F405's 64 KB core-coupled RAM (zero wait states; the firmware's ``.ccmbss`` section, as its
-``NO_DMA_CCM_SAFE_ZERO_INIT``), ``flash`` reads them in place (5 wait states at 168 MHz on an ART data-cache miss)."""
+WEIGHTS_IN = ("ram", "ccm", "flash")
+"""Where the Cortex-M4 reads the tables from: ``ram`` (default) copies them at ``swarm_policy_init`` from flash
+into a static buffer in main SRAM (``.bss``), ``ccm`` into the STM32F405's 64 KB core-coupled RAM (the
+firmware's ``.ccmbss`` section, as its ``NO_DMA_CCM_SAFE_ZERO_INIT``); both have zero wait states at 168 MHz
+(RM0090: the SRAM "can be accessed ... at CPU clock speed with 0 wait states"). ``flash`` reads them in place
+(5 wait states at 168 MHz on an ART data-cache miss). The stock Crazyflie firmware leaves about 0.5 KB of CCM
+free, so ``ccm`` only fits a firmware built without some of its CCM users (``firmware_export.fw_budget``)."""
+DEFAULT_WEIGHTS_IN = "ram"
 CCM_SECTION = ".ccmbss"
 TANHS = ("fast", "libm")
 TANH_FAST_MAX_ERROR = 5e-7
@@ -64,10 +84,15 @@ def c_ident(name: str) -> str:
 
 def _scheme(qlayers: tuple[QDense, ...]) -> str:
     return ", ".join(f"layer {i} {q.weight.shape[1]}->{q.weight.shape[0]} "
-                     f"{'int8 (per-row float scale)' if q.is_int8 else 'float32'}" for i, q in enumerate(qlayers, 1))
+                     f"{'int8 x q15 (per-row float scale)' if q.is_int8 else 'float32'}"
+                     for i, q in enumerate(qlayers, 1))
 
 
-def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm",
+def _pad(n: int, to: int) -> int:
+    return -(-n // to) * to
+
+
+def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = DEFAULT_WEIGHTS_IN,
                 qlayers: tuple[QDense, ...] | None = None) -> str:
     spec, role = model.spec, model.role
     qlayers = float_layers(model.layers) if qlayers is None else qlayers
@@ -89,6 +114,7 @@ def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm
         f"/* Weights: {_scheme(qlayers)}. */",
         f'#define {PREFIX}_WEIGHTS_IN "{weights_in}"',
         f"#define {PREFIX}_WEIGHTS_IN_CCM {int(weights_in == 'ccm')}",
+        f"#define {PREFIX}_WEIGHTS_IN_RAM {int(weights_in == 'ram')}",
         f"#define {PREFIX}_OBS_DIM {model.obs_dim}",
         f"#define {PREFIX}_ACT_DIM {model.act_dim}",
         "",
@@ -116,12 +142,12 @@ def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm
         f"#define {SPEC_PREFIX}_N_EVADERS {spec.team.n_evaders}",
         f"#define {SPEC_PREFIX}_N_AGENTS {spec.team.n_agents} /* ordered pursuers, scouts, evaders */",
         "",
-        "/* Call once before the first swarm_policy_act (e.g. in appMain): with WEIGHTS_IN \"ccm\" it copies the",
-        " * weight tables from flash into CCM RAM; with \"flash\" it does nothing. */",
+        "/* Call once before the first swarm_policy_act (e.g. in appMain): with WEIGHTS_IN \"ram\" or \"ccm\" it",
+        " * copies the weight tables from flash into SRAM or CCM RAM; with \"flash\" it does nothing. */",
         "void swarm_policy_init(void);",
         "",
         "/* One inference: obs laid out as above, act in [-1, 1]^2 (times MAX_SPEED = velocity [m/s], world",
-        " * frame). Reentrant; uses about 2 x 64 floats of stack, no heap. */",
+        " * frame). Reentrant; uses about 2 x 64 floats of stack (int8w: and 64 int16), no heap. */",
         f"void swarm_policy_act(const float obs[{PREFIX}_OBS_DIM], float act[{PREFIX}_ACT_DIM]);",
         "",
         "#endif /* SWARM_POLICY_H */",
@@ -134,38 +160,216 @@ def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm
 # source
 
 
-def _kernel(width: int, activation: str, quant: str) -> tuple[str, str]:
-    """Name and text of a kernel computing ``width`` neurons per group (``quant``: "float" or "int8w")."""
-    name = f"swp_dense{width}_{activation}" + ("_i8" if quant == "int8w" else "")
-    wt = "int8_t" if quant == "int8w" else "float"
+def _store(k: int, v: str, activation: str) -> list[str]:
+    """``y[k] = act(v)`` (``v`` in accumulator ``a<k>`` when it is already there)."""
+    a = f"a{k}"
+    if activation == "relu":
+        if v == a:
+            return [f"        y[{k}] = {a} > 0.0f ? {a} : 0.0f;"]
+        return ["        {", f"            const float z = {v};", f"            y[{k}] = z > 0.0f ? z : 0.0f;", "        }"]
+    if activation == "tanh":
+        return [f"        y[{k}] = swp_tanhf({v});"]
+    return [f"        y[{k}] = {v};"]
+
+
+def _kernel(width: int, activation: str) -> tuple[str, str]:
+    """Name and text of a float kernel computing ``width`` neurons per group."""
+    name = f"swp_dense{width}_{activation}"
     acc = [f"a{k}" for k in range(width)]
-    scale_arg = ", const float *restrict s" if quant == "int8w" else ""
-    lines = [f"static void {name}(const float *restrict x, int n_in, const {wt} *restrict w,",
-             f"    const float *restrict b{scale_arg}, int n_groups, float *restrict y)", "{",
+    lines = [f"static void {name}(const float *restrict x, int n_in, const float *restrict w,",
+             "    const float *restrict b, int n_groups, float *restrict y)", "{",
              "    int g;", "    for (g = 0; g < n_groups; ++g) {"]
-    lines += [f"        float {a} = {'0.0f' if quant == 'int8w' else f'b[{k}]'};" for k, a in enumerate(acc)]
+    lines += [f"        float {a} = b[{k}];" for k, a in enumerate(acc)]
     lines += ["        const float *xp = x;", "        int n = n_in;"]
-    cast = "(float)" if quant == "int8w" else ""
     loop = ["        do {", "            const float xi = *xp++;"]
-    loop += [f"            {a} += {cast}w[{k}] * xi;" for k, a in enumerate(acc)]
+    loop += [f"            {a} += w[{k}] * xi;" for k, a in enumerate(acc)]
     loop += [f"            w += {width};", "        } while (--n > 0);"]
-    if width == 8 and quant == "float":
-        lines += ["#ifdef SWP_M4_ASM", *_m4_asm_loop8(), "#else", *loop, "#endif"]
-    else:
-        lines += loop
+    m4 = {8: _m4_asm_loop8, 2: _m4_asm_loop2}.get(width)
+    lines += ["#ifdef SWP_M4_ASM", *m4(), "#else", *loop, "#endif"] if m4 else loop
     for k, a in enumerate(acc):
-        v = f"{a} * s[{k}] + b[{k}]" if quant == "int8w" else a
-        if activation == "relu":
-            if v != a:
-                lines.append(f"        {a} = {v};")
-            lines.append(f"        y[{k}] = {a} > 0.0f ? {a} : 0.0f;")
-        elif activation == "tanh":
-            lines.append(f"        y[{k}] = swp_tanhf({v});")
-        else:
-            lines.append(f"        y[{k}] = {v};")
-    adv = f"b += {width}; y += {width};" + (f" s += {width};" if quant == "int8w" else "")
-    lines += [f"        {adv}", "    }", "}", ""]
+        lines += _store(k, a, activation)
+    lines += [f"        b += {width}; y += {width};", "    }", "}", ""]
     return name, "\n".join(lines)
+
+
+_Q15_TEXT = f"""/* q15 copy of x[0..n) with one scale for the vector (x ~= q * scale, |q| <= {Q15_MAX}), packed two per word
+ * (x[2k] in the low half), zero-padded to n_pad; returns the scale. The M4 rounds with VCVTR (to nearest,
+ * ties to even), the portable C to nearest with ties away from zero: they differ only on exact ties. */
+#ifdef SWP_M4_ASM
+static int32_t swp_round(float v) {{ int32_t r; __asm__("vcvtr.s32.f32 %1, %1\\n\\tvmov %0, %1" : "=r" (r), "+t" (v)); return r; }}
+#else
+static int32_t swp_round(float v) {{ return (int32_t)(v >= 0.0f ? v + 0.5f : v - 0.5f); }}
+#endif
+static uint32_t swp_pack(int32_t lo, int32_t hi) {{ return ((uint32_t)lo & 0xffffu) | ((uint32_t)hi << 16); }}
+static float swp_q15(const float *restrict x, int n, int n_pad, uint32_t *restrict xq)
+{{
+    float amax = 0.0f, inv;
+    int i = 0;
+#ifdef SWP_M4_ASM
+    if (n >= 4) {{ /* max |x| on the bit patterns: for finite floats 2*bits orders like |x| (LDRD, LSL, CMP, IT) */
+        const float *xp = x;
+        uint32_t m = 0u, v0, v1, v2, v3;
+        int k = n >> 2;
+        __asm__ volatile(
+            "1:\\n\\t"
+            "ldrd %[v0], %[v1], [%[xp]], #8\\n\\t" "ldrd %[v2], %[v3], [%[xp]], #8\\n\\t"
+            "lsls %[v0], %[v0], #1\\n\\t" "cmp %[v0], %[m]\\n\\t" "it hi\\n\\t" "movhi %[m], %[v0]\\n\\t"
+            "lsls %[v1], %[v1], #1\\n\\t" "cmp %[v1], %[m]\\n\\t" "it hi\\n\\t" "movhi %[m], %[v1]\\n\\t"
+            "lsls %[v2], %[v2], #1\\n\\t" "cmp %[v2], %[m]\\n\\t" "it hi\\n\\t" "movhi %[m], %[v2]\\n\\t"
+            "lsls %[v3], %[v3], #1\\n\\t" "cmp %[v3], %[m]\\n\\t" "it hi\\n\\t" "movhi %[m], %[v3]\\n\\t"
+            "subs %[k], %[k], #1\\n\\t"
+            "bne 1b\\n\\t"
+            : [xp] "+r" (xp), [k] "+r" (k), [m] "+r" (m), [v0] "=&r" (v0), [v1] "=&r" (v1), [v2] "=&r" (v2),
+              [v3] "=&r" (v3)
+            :
+            : "cc", "memory");
+        m >>= 1;
+        __asm__("vmov %0, %1" : "=t" (amax) : "r" (m));
+        i = n & ~3;
+    }}
+#endif
+    for (; i < n; ++i) {{
+        const float a = x[i] < 0.0f ? -x[i] : x[i];
+        amax = a > amax ? a : amax;
+    }}
+    if (!(amax > 0.0f)) amax = 1.0f; /* an all-zero input: any scale gives zeros */
+    inv = {Q15_MAX}.0f / amax;
+    i = 0;
+#ifdef SWP_M4_ASM
+    if (n >= 4) {{ /* 4 inputs per iteration: VLDM, VMUL, VCVTR, VMOV to core registers, PKHBT, STRD (30 cycles) */
+        const float *xp = x;
+        uint32_t *qp = xq, q0, q1, q2, q3;
+        int k = n >> 2;
+        __asm__ volatile(
+            "1:\\n\\t"
+            "vldmia %[xp]!, {{s12-s15}}\\n\\t"
+            "vmul.f32 s12, s12, %[inv]\\n\\t" "vmul.f32 s13, s13, %[inv]\\n\\t"
+            "vmul.f32 s14, s14, %[inv]\\n\\t" "vmul.f32 s15, s15, %[inv]\\n\\t"
+            "vcvtr.s32.f32 s12, s12\\n\\t" "vcvtr.s32.f32 s13, s13\\n\\t"
+            "vcvtr.s32.f32 s14, s14\\n\\t" "vcvtr.s32.f32 s15, s15\\n\\t"
+            "vmov %[q0], %[q1], s12, s13\\n\\t" "vmov %[q2], %[q3], s14, s15\\n\\t"
+            "pkhbt %[q0], %[q0], %[q1], lsl #16\\n\\t" "pkhbt %[q2], %[q2], %[q3], lsl #16\\n\\t"
+            "strd %[q0], %[q2], [%[qp]], #8\\n\\t"
+            "subs %[k], %[k], #1\\n\\t"
+            "bne 1b\\n\\t"
+            : [xp] "+r" (xp), [qp] "+r" (qp), [k] "+r" (k), [q0] "=&r" (q0), [q1] "=&r" (q1), [q2] "=&r" (q2),
+              [q3] "=&r" (q3)
+            : [inv] "t" (inv)
+            : "s12", "s13", "s14", "s15", "cc", "memory");
+        i = n & ~3;
+    }}
+#endif
+    for (; i + 1 < n; i += 2) xq[i >> 1] = swp_pack(swp_round(x[i] * inv), swp_round(x[i + 1] * inv));
+    if (i < n) {{
+        xq[i >> 1] = swp_pack(swp_round(x[i] * inv), 0);
+        i += 2;
+    }}
+    for (; i < n_pad; i += 2) xq[i >> 1] = 0u;
+    return amax / {Q15_MAX}.0f;
+}}
+
+#ifndef SWP_M4_ASM
+/* What SXTB16/SMLAD compute, in portable C: four int8 weights packed w0 w2 w1 w3 times (x0, x1), (x2, x3). */
+static int32_t swp_s8(uint32_t v, int sh) {{ const int32_t b = (int32_t)((v >> sh) & 0xffu); return b - ((b & 0x80) << 1); }}
+static int32_t swp_s16(uint32_t v, int sh) {{ const int32_t h = (int32_t)((v >> sh) & 0xffffu); return h - ((h & 0x8000) << 1); }}
+static int32_t swp_dot4(uint32_t w, uint32_t x01, uint32_t x23)
+{{
+    return swp_s8(w, 0) * swp_s16(x01, 0) + swp_s8(w, 16) * swp_s16(x01, 16)
+         + swp_s8(w, 8) * swp_s16(x23, 0) + swp_s8(w, 24) * swp_s16(x23, 16);
+}}
+#endif
+"""
+
+
+def _asm(lines: list[str], indent: str = "            ") -> list[str]:
+    return [f'{indent}"{x}\\n\\t"' for x in lines]
+
+
+def _m4_smlad_loop() -> list[str]:
+    """The int8 inner loop in Thumb-2 DSP instructions, 16 inputs x 4 neurons per iteration: per 4 inputs one
+    LDRD of two packed q15 input pairs (3 cycles), one LDM of the 4 neurons' weight words (5), 8 SXTB16 and 8 SMLAD
+    (16): 24 cycles for 16 MACs in the cycle model, plus 4 per iteration for the loop. The LDM's registers are
+    pinned (r8-r11, ascending as LDM needs); the rest is left to the compiler."""
+    body = []
+    for _ in range(QBLOCK // 4):
+        body += ["ldrd %[x01], %[x23], [%[xp]], #8", "ldmia %[w]!, {%[w0], %[w1], %[w2], %[w3]}"]
+        for k in range(QGROUP):
+            body += [f"sxtb16 %[t], %[w{k}]", f"sxtb16 %[w{k}], %[w{k}], ror #8",
+                     f"smlad %[a{k}], %[t], %[x01], %[a{k}]", f"smlad %[a{k}], %[w{k}], %[x23], %[a{k}]"]
+    regs = [f'register uint32_t w{k} __asm__("r{8 + k}");' for k in range(QGROUP)]
+    return (["        {", *[f"        {r}" for r in regs], "        uint32_t x01, x23, t;", f"        n /= {QBLOCK // 4};",
+             "        __asm__ volatile(", *_asm(["1:", *body, "subs %[n], %[n], #1", "bne 1b"]),
+             '            : [a0] "+r" (a0), [a1] "+r" (a1), [a2] "+r" (a2), [a3] "+r" (a3), [xp] "+r" (xp),',
+             '              [w] "+r" (w), [n] "+r" (n), [x01] "=&r" (x01), [x23] "=&r" (x23), [t] "=&r" (t),',
+             '              [w0] "=&r" (w0), [w1] "=&r" (w1), [w2] "=&r" (w2), [w3] "=&r" (w3)',
+             '            :', '            : "cc", "memory");', "        }"])
+
+
+def _m4_relu_epilogue() -> list[str]:
+    """``y = relu(acc * (s * x_scale) + b)`` for the 4 neurons in VFP instructions (s and b are stored halved
+    for relu layers, so that relu(z) = z/2 + |z/2| is exact and costs a VABS and a VADD): 43 cycles."""
+    ops = [f"vmov s{8 + k}, %[a{k}]" for k in range(4)] + [f"vcvt.f32.s32 s{8 + k}, s{8 + k}" for k in range(4)]
+    ops += ["vldmia %[s]!, {s12-s15}"] + [f"vmul.f32 s{12 + k}, s{12 + k}, %[xs]" for k in range(4)]
+    ops += [f"vmul.f32 s{8 + k}, s{8 + k}, s{12 + k}" for k in range(4)] + ["vldmia %[b]!, {s12-s15}"]
+    ops += [f"vadd.f32 s{8 + k}, s{8 + k}, s{12 + k}" for k in range(4)]
+    ops += [f"vabs.f32 s{12 + k}, s{8 + k}" for k in range(4)] + [f"vadd.f32 s{8 + k}, s{8 + k}, s{12 + k}" for k in range(4)]
+    ops += ["vstmia %[y]!, {s8-s11}"]
+    return (["        __asm__ volatile(", *_asm(ops),
+             '            : [s] "+r" (s), [b] "+r" (b), [y] "+r" (y)',
+             '            : [a0] "r" (a0), [a1] "r" (a1), [a2] "r" (a2), [a3] "r" (a3), [xs] "t" (x_scale)',
+             '            : ' + ", ".join(f'"s{k}"' for k in range(8, 16)) + ', "memory");'])
+
+
+def _kernel_q7(activation: str) -> tuple[str, str]:
+    """Name and text of the int8 kernel: ``QGROUP`` neurons per group, inputs in blocks of 4 (``n_blk``, even)."""
+    name = f"swp_dense{QGROUP}_{activation}_q7"
+    lines = [f"static void {name}(const uint32_t *restrict xq, int n_blk, float x_scale, const uint32_t *restrict w,",
+             "    const float *restrict b, const float *restrict s, int n_groups, float *restrict y)", "{",
+             "    int g;", "    for (g = 0; g < n_groups; ++g) {",
+             "        int32_t " + ", ".join(f"a{k} = 0" for k in range(QGROUP)) + ";",
+             "        const uint32_t *xp = xq;", "        int n = n_blk;", "#ifdef SWP_M4_ASM", *_m4_smlad_loop(),
+             "#else", "        do {", "            const uint32_t x01 = xp[0], x23 = xp[1];"]
+    lines += [f"            a{k} += swp_dot4(w[{k}], x01, x23);" for k in range(QGROUP)]
+    lines += [f"            w += {QGROUP}; xp += 2;", "        } while (--n > 0);", "#endif"]
+    if activation == "relu":  # s and b halved: y = z/2 + |z/2|
+        lines += ["#ifdef SWP_M4_ASM", *_m4_relu_epilogue(), "#else"]
+        for k in range(QGROUP):
+            lines += ["        {", f"            const float z = (float)a{k} * (s[{k}] * x_scale) + b[{k}];",
+                      f"            y[{k}] = z + (z < 0.0f ? -z : z);", "        }"]
+        lines += [f"        b += {QGROUP}; s += {QGROUP}; y += {QGROUP};", "#endif"]
+    else:
+        for k in range(QGROUP):
+            lines += _store(k, f"(float)a{k} * (s[{k}] * x_scale) + b[{k}]", activation)
+        lines += [f"        b += {QGROUP}; s += {QGROUP}; y += {QGROUP};"]
+    lines += ["    }", "}", ""]
+    return name, "\n".join(lines)
+
+
+def pack_q7(q: np.ndarray) -> np.ndarray:
+    """int8 ``q`` [out, in] as the uint32 words the q7 kernel reads: rows padded to ``QGROUP``, inputs to
+    ``QBLOCK`` (zeros), then for each group of rows, each block of 4 inputs, each row of the group one word with
+    bytes (w0, w2, w1, w3) from the least significant up."""
+    n_out, n_in = q.shape
+    p = np.zeros((_pad(n_out, QGROUP), _pad(n_in, QBLOCK)), np.int64)
+    p[:n_out, :n_in] = q
+    u = p & 0xFF
+    blk = u.reshape(p.shape[0] // QGROUP, QGROUP, -1, 4).transpose(0, 2, 1, 3)  # [group][block][row][4]
+    words = blk[..., 0] | (blk[..., 2] << 8) | (blk[..., 1] << 16) | (blk[..., 3] << 24)
+    return words.reshape(-1).astype(np.uint32)
+
+
+def _m4_asm_loop2() -> list[str]:
+    """The 2-neuron (action layer) inner loop, four inputs per iteration: one VLDM of 4 inputs (5 cycles), one of
+    8 weights (9), 8 VMUL + 8 VADD (16), where the C loop's VLDR + VFMA pairs take 16 cycles per input."""
+    ops = ["1:", "vldmia %[xp]!, {s8-s11}", "vldmia %[w]!, {s0-s7}"]
+    ops += [f"vmul.f32 s{k}, s{k}, s{8 + k // 2}" for k in range(8)]
+    ops += [f"vadd.f32 %[a{k % 2}], %[a{k % 2}], s{k}" for k in range(8)]
+    ops += ["subs %[n], %[n], #1", "bne 1b"]
+    return (["        n = n_in >> 2;", "        if (n > 0) __asm__ volatile(", *_asm(ops),
+             '            : [a0] "+t" (a0), [a1] "+t" (a1), [xp] "+r" (xp), [w] "+r" (w), [n] "+r" (n)',
+             '            :', '            : ' + ", ".join(f'"s{k}"' for k in range(12)) + ', "cc", "memory");',
+             "        for (n = n_in & 3; n > 0; --n) {", "            const float xi = *xp++;",
+             "            a0 += w[0] * xi;", "            a1 += w[1] * xi;", "            w += 2;", "        }"])
 
 
 def _m4_asm_loop8() -> list[str]:
@@ -226,14 +430,37 @@ def _interleave(w: np.ndarray, width: int) -> np.ndarray:
     return w.reshape(out // width, width, n_in).transpose(0, 2, 1).reshape(-1)
 
 
-def source_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm",
-                qlayers: tuple[QDense, ...] | None = None) -> tuple[str, int]:
+def _check(quant: str, tanh: str, weights_in: str) -> None:
     if quant not in QUANTS:
         raise CExportError(f"unknown quantization {quant!r}: use one of {list(QUANTS)}")
     if tanh not in TANHS:
         raise CExportError(f"unknown tanh {tanh!r}: use one of {list(TANHS)}")
     if weights_in not in WEIGHTS_IN:
         raise CExportError(f"unknown weights location {weights_in!r}: use one of {list(WEIGHTS_IN)}")
+
+
+def _placement(weights_in: str) -> list[str]:
+    """The tables' working copy (or none) and ``swarm_policy_init``."""
+    if weights_in == "flash":
+        return ["#define SWP_T swp_rom", "", "void swarm_policy_init(void)", "{", "}", ""]
+    if weights_in == "ccm":
+        where = [
+            "/* The working copy in the STM32F405's core-coupled RAM (zero wait states, not reachable by DMA), in the",
+            " * Crazyflie firmware's .ccmbss section (its NO_DMA_CCM_SAFE_ZERO_INIT); filled by swarm_policy_init.",
+            " * Define SWARM_POLICY_CCM_ATTR (empty for plain RAM) to place it elsewhere. */",
+            "#ifndef SWARM_POLICY_CCM_ATTR", "#if defined(__ARM_ARCH_7EM__)",
+            f'#define SWARM_POLICY_CCM_ATTR __attribute__((section("{CCM_SECTION}")))',
+            "#else", "#define SWARM_POLICY_CCM_ATTR", "#endif", "#endif",
+            "static swp_tables_t swp_ram SWARM_POLICY_CCM_ATTR;"]
+    else:
+        where = ["/* The working copy in main SRAM (.bss; zero wait states at 168 MHz like CCM), filled by",
+                 " * swarm_policy_init. */", "static swp_tables_t swp_ram;"]
+    return where + ["#define SWP_T swp_ram", "", "void swarm_policy_init(void)", "{", "    swp_ram = swp_rom;", "}", ""]
+
+
+def source_text(model: ActorModel, quant: str, tanh: str, weights_in: str = DEFAULT_WEIGHTS_IN,
+                qlayers: tuple[QDense, ...] | None = None) -> tuple[str, int]:
+    _check(quant, tanh, weights_in)
     if qlayers is None:
         if quant == "int8w":
             raise CExportError("int8w needs the quantized layers (firmware_export.quantize.quantize_layers)")
@@ -245,7 +472,8 @@ def source_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm
     inits: list[str] = []
     body: list[str] = []
     weight_bytes = 0
-    widest = max(q.weight.shape[0] for q in qlayers[:-1]) if len(qlayers) > 1 else 1
+    widest = max((_pad(q.weight.shape[0], QGROUP) for q in qlayers[:-1]), default=1)
+    widest_q = max((_pad(q.weight.shape[1], QBLOCK) for q in qlayers if q.is_int8), default=0)
     bufs = ["swp_h0", "swp_h1"]
     used: set[str] = set()
     src = "obs"
@@ -259,32 +487,41 @@ def source_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm
         last = li == len(qlayers)
         dst = "act" if last else bufs[li % 2]
         used.add(dst)
+        what = f"/* layer {li}: {n_in} -> {n_out}, {ql.activation}, {'int8 x q15' if ql.is_int8 else 'float'} */"
+        if ql.is_int8:
+            if n_in > INT8_MAX_INPUTS:
+                raise CExportError(f"layer {li} has {n_in} inputs: int8w handles at most {INT8_MAX_INPUTS} (int32 "
+                                   "accumulator); export it with --quant float")
+            if last and n_out % QGROUP:
+                raise CExportError(f"an int8 output layer needs a multiple of {QGROUP} outputs, not {n_out}: keep "
+                                   "the output layer float (firmware_export.quantize.quantize_layers does)")
+            n_pad, rows = _pad(n_in, QBLOCK), _pad(n_out, QGROUP)
+            kname, ktext = _kernel_q7(ql.activation)
+            kernels[kname] = ktext
+            member("uint32_t", f"W_L{li}", pack_q7(ql.weight), lambda v: f"0x{int(v):08x}u", 8)
+            half = np.float32(0.5 if ql.activation == "relu" else 1.0)  # the relu epilogue's z/2 + |z/2|
+            member("float", f"S_L{li}", np.r_[ql.scale * half, np.zeros(rows - n_out, np.float32)], c_float)
+            member("float", f"B_L{li}", np.r_[ql.bias * half, np.zeros(rows - n_out, np.float32)], c_float)
+            weight_bytes += n_pad * rows + 8 * rows
+            body += [f"    xs = swp_q15({src}, {n_in}, {n_pad}, swp_xq);",
+                     f"    {kname}(swp_xq, {n_pad // 4}, xs, SWP_T.W_L{li}, SWP_T.B_L{li}, SWP_T.S_L{li}, "
+                     f"{rows // QGROUP}, {dst}); {what}"]
+            src = dst
+            continue
         parts = [(GROUP, n_out // GROUP)] if n_out >= GROUP else []
-        rem = n_out % GROUP
-        if rem:
-            parts.append((rem, 1))
-        lq = "int8w" if ql.is_int8 else "float"
+        if n_out % GROUP:
+            parts.append((n_out % GROUP, 1))
         row0 = 0
         for pi, (width, groups) in enumerate(parts):
             rows = slice(row0, row0 + width * groups)
             tag = f"L{li}" + ("" if len(parts) == 1 else "ABCDEFGH"[pi])
-            w, b = ql.weight[rows], ql.bias[rows]
-            kname, ktext = _kernel(width, ql.activation, lq)
+            kname, ktext = _kernel(width, ql.activation)
             kernels[kname] = ktext
-            if ql.is_int8:
-                member("int8_t", f"W_{tag}", _interleave(w, width), lambda v: str(int(v)), 16)
-                member("float", f"S_{tag}", ql.scale[rows], c_float)
-                weight_bytes += w.size + 4 * width * groups
-                args = f"SWP_T.W_{tag}, SWP_T.B_{tag}, SWP_T.S_{tag}"
-            else:
-                member("float", f"W_{tag}", _interleave(w, width), c_float)
-                weight_bytes += 4 * w.size
-                args = f"SWP_T.W_{tag}, SWP_T.B_{tag}"
-            member("float", f"B_{tag}", b, c_float)
-            weight_bytes += 4 * b.size
+            member("float", f"W_{tag}", _interleave(ql.weight[rows], width), c_float)
+            member("float", f"B_{tag}", ql.bias[rows], c_float)
+            weight_bytes += 4 * ql.weight[rows].size + 4 * width * groups
             off = f" + {row0}" if row0 else ""
-            body.append(f"    {kname}({src}, {n_in}, {args}, {groups}, {dst}{off});"
-                        f" /* layer {li}: {n_in} -> {n_out}, {ql.activation}, {'int8' if ql.is_int8 else 'float'} */")
+            body.append(f"    {kname}({src}, {n_in}, SWP_T.W_{tag}, SWP_T.B_{tag}, {groups}, {dst}{off}); {what}")
             row0 += width * groups
         src = dst
     dims = " -> ".join([str(model.obs_dim)] + [str(q.weight.shape[0]) for q in qlayers])
@@ -292,41 +529,31 @@ def source_text(model: ActorModel, quant: str, tanh: str, weights_in: str = "ccm
             f" * {dims} MLP, weights {quant}: {_scheme(qlayers)}; tables read from {weights_in}.",
             " * No heap, no stdio" + (", tanhf from libm (link -lm)." if tanh == "libm" else ", no libm.") + " */",
             '#include "policy.h"', ""]
-    head += ["/* Cortex-M4F builds (arm-none-eabi-gcc -mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard) use a",
-             " * hand-scheduled inner loop; define SWARM_POLICY_NO_ASM to use the portable C everywhere. */",
-             "#if defined(__ARM_ARCH_7EM__) && defined(__ARM_FP) && !defined(SWARM_POLICY_NO_ASM)",
+    head += ["/* Cortex-M4F builds (arm-none-eabi-gcc -mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard) use",
+             " * hand-scheduled inner loops (VLDM/VMUL/VADD for float, SXTB16/SMLAD for int8); define",
+             " * SWARM_POLICY_NO_ASM to use the portable C everywhere. */",
+             "#if defined(__ARM_ARCH_7EM__) && defined(__ARM_FP) && defined(__OPTIMIZE__) && !defined(SWARM_POLICY_NO_ASM)",
              "#define SWP_M4_ASM 1", "#endif", ""]
-    if any(q.is_int8 for q in qlayers):
+    if widest_q:
         head.insert(4, "#include <stdint.h>")
     if tanh == "libm":
         head.insert(4, "#include <math.h>")
     tables = ["/* Every weight, bias and scale, in the order the kernels read them. */",
               "typedef struct {", *members, "} swp_tables_t;", "",
-              "static const swp_tables_t swp_rom = {", ",\n".join(inits), "};", ""]
-    if weights_in == "ccm":
-        tables += [
-            "/* The working copy in the STM32F405's core-coupled RAM (zero wait states, not reachable by DMA), in the",
-            " * Crazyflie firmware's .ccmbss section (its NO_DMA_CCM_SAFE_ZERO_INIT); filled by swarm_policy_init.",
-            " * Define SWARM_POLICY_CCM_ATTR (empty for plain RAM) to place it elsewhere. */",
-            "#ifndef SWARM_POLICY_CCM_ATTR",
-            "#if defined(__ARM_ARCH_7EM__)",
-            f'#define SWARM_POLICY_CCM_ATTR __attribute__((section("{CCM_SECTION}")))',
-            "#else", "#define SWARM_POLICY_CCM_ATTR", "#endif", "#endif",
-            "static swp_tables_t swp_ram SWARM_POLICY_CCM_ATTR;",
-            "#define SWP_T swp_ram", "",
-            "void swarm_policy_init(void)", "{", "    swp_ram = swp_rom;", "}", ""]
-    else:
-        tables += ["#define SWP_T swp_rom", "", "void swarm_policy_init(void)", "{", "}", ""]
+              "static const swp_tables_t swp_rom = {", ",\n".join(inits), "};", "", *_placement(weights_in)]
     fn = ["void swarm_policy_act(const float obs[SWARM_POLICY_OBS_DIM], float act[SWARM_POLICY_ACT_DIM])", "{"]
     fn += [f"    float {b}[{widest}];" for b in bufs if b in used]
+    if widest_q:
+        fn += [f"    uint32_t swp_xq[{widest_q // 2}]; /* the current layer's input as packed q15 */", "    float xs;"]
     fn += body + ["}", ""]
     tanh_fn = _tanh_text(tanh) + "\n" if any(q.activation == "tanh" for q in qlayers) else ""
-    text = ("\n".join(head) + "\n" + "\n".join(tables) + "\n" + tanh_fn + "\n".join(kernels.values())
+    q15 = _Q15_TEXT + "\n" if widest_q else ""
+    text = ("\n".join(head) + "\n" + "\n".join(tables) + "\n" + tanh_fn + q15 + "\n".join(kernels.values())
             + "\n".join(fn))
     return text, weight_bytes
 
 
-def generate(model: ActorModel, quant: str = "float", tanh: str = "fast", weights_in: str = "ccm",
+def generate(model: ActorModel, quant: str = "float", tanh: str = "fast", weights_in: str = DEFAULT_WEIGHTS_IN,
              qlayers: tuple[QDense, ...] | None = None) -> CSources:
     src, nbytes = source_text(model, quant, tanh, weights_in, qlayers)
     return CSources(header_text(model, quant, tanh, weights_in, qlayers), src, nbytes)

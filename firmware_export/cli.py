@@ -11,7 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
-from firmware_export.cgen import QUANTS, TANHS, WEIGHTS_IN
+from firmware_export.cgen import DEFAULT_WEIGHTS_IN, QUANTS, TANHS, WEIGHTS_IN
 from firmware_export.mlp_graph import CExportError
 from runtime.spec import SpecError
 
@@ -20,7 +20,8 @@ def _cmd_c(args: argparse.Namespace) -> int:
     from firmware_export.c_export import export_c
 
     ex = export_c(args.model, args.out, quant=args.quant, tanh=args.tanh, spec_toml=args.spec_toml, role=args.role,
-                  weights_in=args.weights_in, int8_rounding=args.int8_rounding, calib_obs=args.calib_obs)
+                  weights_in=args.weights_in, int8_rounding=args.int8_rounding, calib_obs=args.calib_obs,
+                  check_budget=not args.ignore_budget)
     m = ex.model
     print(f"wrote {ex.header} and {ex.source}: agent {m.agent_id} ({m.role.label}), spec {m.spec.hash}, "
           f"obs {m.obs_dim} -> act {m.act_dim}, weights {ex.quant} ({ex.sources.weight_bytes} B of tables, "
@@ -47,9 +48,13 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quant", choices=QUANTS, default="float",
                    help="float: float32 weights; int8w: hidden layers int8 with one float scale per neuron, the "
                         "output layer float")
-    p.add_argument("--weights-in", choices=WEIGHTS_IN, default="ccm",
-                   help="ccm (default): swarm_policy_init copies the tables to the STM32F405's CCM RAM (zero wait "
-                        "states); flash: read them in place (flash wait states; no CCM used)")
+    p.add_argument("--weights-in", choices=WEIGHTS_IN, default=DEFAULT_WEIGHTS_IN,
+                   help="ram (default): swarm_policy_init copies the tables to main SRAM (zero wait states; fits "
+                        "the stock Crazyflie firmware); ccm: to the STM32F405's CCM RAM (zero wait states; the stock "
+                        "firmware leaves about 0.6 KB of it); flash: read them in place (5 wait states per ART miss)")
+    p.add_argument("--ignore-budget", action="store_true",
+                   help="write the sources even when the tables do not fit the memory the stock Crazyflie firmware "
+                        "leaves free (for a firmware built with less of its own state)")
     p.add_argument("--int8-rounding", choices=("gptq", "nearest"), default="gptq",
                    help="int8w only: gptq (error compensation on calibration observations) or nearest")
     p.add_argument("--calib-obs", type=int, default=20_000,

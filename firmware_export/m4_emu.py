@@ -11,6 +11,7 @@ class                                           cycles
 ALU, MOV, compare, shifts, extends, IT, NOP     1
 MUL, SMLAD, SMLA*, SMUL*, SXTB16                1;  MLA, MLS 2;  SDIV, UDIV 12 (worst case)
 LDR*, STR* (one register)                       2   (no credit for pipelined neighbours: conservative)
+LDRD, STRD                                      3   (1 + N, N = 2 words)
 LDM, STM, PUSH, POP (N registers)               1 + N   (+P when PC is loaded)
 branch (B, BL, BX, CBZ, ...), taken              1 + P, P = 2 (pipeline refill, TRM range 1-3)
 branch not taken                                1
@@ -22,8 +23,11 @@ VLDR, VSTR                                      2   (.64: 3)
 VLDM, VSTM, VPUSH, VPOP (N words)               1 + N
 ==============================================  ==========================================================
 
-On top of that, flash wait states (``flash_stalls``). SRAM (0x2000_0000) and CCM RAM (0x1000_0000) have zero wait
-states. The STM32F405's flash needs 5 wait states at 168 MHz (RM0090, Table 10); its ART accelerator reads
+On top of that, flash wait states (``flash_stalls``). Main SRAM (0x2000_0000) and CCM RAM (0x1000_0000) have zero
+wait states: RM0090 (STM32F405 reference manual) section 2.3.1, "Embedded SRAM": read and write operations on the
+system SRAM are performed at CPU speed with 0 wait state; CCM is on the core's D-bus. So the ``ram`` and ``ccm``
+placements of the tables cost the same cycles here; ``ram`` is the default because the stock firmware leaves
+37 KB of SRAM but 0.6 KB of CCM free (``firmware_export.fw_budget``). The STM32F405's flash needs 5 wait states at 168 MHz (RM0090, Table 10); its ART accelerator reads
 128-bit lines and keeps 64 of them in an instruction cache and 8 in a data cache (RM0090, section 3.5.2). The
 model follows every executed instruction's line and every data read of a flash address (a unicorn memory hook)
 through two LRU caches of those sizes, both cold at the start of the call (the rest of the firmware runs
@@ -34,7 +38,11 @@ between two inferences), and charges 5 cycles per miss. What it does not model, 
 - data reads get no prefetch on the STM32F4 (the prefetch serves the I-code bus only), so a weight stream from
   flash misses once per 16 bytes whatever the access pattern: exact for that part under this model;
 - the replacement policy of the ART caches is not documented; LRU is assumed;
-- bus-matrix contention with DMA (SRAM only; CCM and flash reads by the core see none from DMA) and interrupts.
+- bus-matrix contention with DMA (SRAM only; CCM and flash reads by the core see none from DMA: on the Crazyflie
+  the radio UART, the sensors' SPI/I2C and the LED ring use DMA; a DMA transfer into SRAM1 while the core reads it
+  delays the core's access by the arbitration; the tables sit wherever the linker puts ``.bss``) and interrupts;
+- the pipelining of neighbouring single loads and stores (TRM: an LDR after an LDR can take 1 cycle): every LDR/STR
+  is charged 2 cycles, LDRD/STRD 3.
 """
 from __future__ import annotations
 
@@ -60,9 +68,12 @@ FLASH_LINE_BYTES = 16
 ART_ICACHE_LINES = 64
 ART_DCACHE_LINES = 8
 _RETURN = 0x0810_0000
-_OBS_ADDR = RAM_BASE + 0x1000
-_ACT_ADDR = RAM_BASE + 0x2000
-_STACK_TOP = RAM_BASE + 0x2_0000
+_OBS_ADDR = RAM_BASE + 0x1_F000
+"""The call's arguments sit at the top of SRAM, above the stack; ``.data``/``.bss`` (the ``ram`` tables' copy)
+start at the bottom."""
+_ACT_ADDR = RAM_BASE + 0x1_F800
+_STACK_TOP = RAM_BASE + 0x1_F000
+_STACK_ROOM = 0x4000
 _BRANCHES = re.compile(r"^(b|bl|blx|bx|cbz|cbnz|tbb|tbh)(eq|ne|cs|hs|cc|lo|mi|pl|vs|vc|hi|ls|ge|lt|gt|le|al)?"
                        r"(\.n|\.w)?$")
 
@@ -86,6 +97,8 @@ class FlashStalls:
     """Data reads (words) of flash addresses: literal pools, and the tables when they are read in place."""
     ccm_data_reads: int
     """Data reads (words) of CCM addresses: the tables' working copy with ``--weights-in ccm``."""
+    ram_table_reads: int = 0
+    """Data reads of the static SRAM (``.data``/``.bss``, not the stack): the tables' copy with ``ram``."""
 
     @property
     def cycles(self) -> int:
@@ -188,6 +201,8 @@ def instr_cycles(ins: Instr, taken: bool) -> tuple[str, int]:
         return "branch", 1 + (REFILL if taken else 0)
     if base in ("ldm", "ldmia", "ldmdb", "stm", "stmia", "stmdb", "push", "pop"):
         return "load/store multiple", 1 + _reglist_words(ops)
+    if base in ("ldrd", "strd"):
+        return "load/store", 3
     if base.startswith(("ldr", "str")):
         return "load/store", 2
     if base in ("mla", "mls"):
@@ -223,9 +238,11 @@ def flash_stalls(b: M4Build, trace: list[int], reads: list[int]) -> FlashStalls:
             ilines.append(last)
     flash_reads = [a for a in reads if FLASH_BASE <= a < FLASH_BASE + (1 << 20)]
     ccm_reads = sum(1 for a in reads if CCM_BASE <= a < CCM_BASE + CCM_BYTES)
+    static_end = RAM_BASE + b.sizes.data + b.sizes.bss
+    ram_reads = sum(1 for a in reads if RAM_BASE <= a < static_end)
     return FlashStalls(_lru_misses(ilines, ART_ICACHE_LINES),
                        _lru_misses((a // FLASH_LINE_BYTES for a in flash_reads), ART_DCACHE_LINES),
-                       len(flash_reads), ccm_reads)
+                       len(flash_reads), ccm_reads, ram_reads)
 
 
 def _count(b: M4Build, trace: list[int], end: int) -> tuple[int, dict[str, list[int]]]:
@@ -254,6 +271,9 @@ def run(b: M4Build, obs: np.ndarray, act_dim: int = 2, count: bool = True) -> M4
     except ImportError:
         raise EmulatorError("the unicorn emulator is not installed: pip install unicorn "
                             "(it is in the project's dev extra)") from None
+    if b.sizes.data + b.sizes.bss > _STACK_TOP - RAM_BASE - _STACK_ROOM:
+        raise EmulatorError(f"{b.sizes.data + b.sizes.bss} B of static RAM leave no room for the stack in the "
+                            "emulator's 128 KB SRAM: export with smaller tables or --weights-in flash")
     uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB | UC_MODE_MCLASS)
     uc.ctl_set_cpu_model(ac.UC_CPU_ARM_CORTEX_M4)
     uc.mem_map(FLASH_BASE, 1 << 20)

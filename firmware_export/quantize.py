@@ -28,6 +28,8 @@ from runtime.spec import INT8_QMAX
 
 ROUNDINGS = ("gptq", "nearest")
 QMAX = INT8_QMAX
+Q15_MAX = 32767
+"""q15 activations of the int8 layers (the C kernels take each layer's input as int16 with one scale per vector)."""
 DAMP = 0.01
 """GPTQ's damping: ``H + DAMP * mean(diag H) * I`` (keeps the inverse sane for inputs that never vary)."""
 
@@ -138,3 +140,32 @@ def quantize_layers(layers: tuple[Dense, ...], calib: np.ndarray | None, roundin
             x_q = _act(x_q @ (q.astype(np.float64) * s.astype(np.float64)[:, None]).T + b, d.activation)
         out.append(QDense(q, s, b.astype(np.float32), d.activation))
     return tuple(out)
+
+
+def q15_vector(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the C's ``swp_q15`` computes for each row of ``x`` [B, n] (float32 arithmetic): int16 values
+    ``round(x * 32767 / max|x|)`` (ties away from zero) and the per-row scale ``max|x| / 32767``."""
+    x = np.asarray(x, dtype=np.float32)
+    amax = np.abs(x).max(axis=1)
+    amax = np.where(amax > 0, amax, np.float32(1.0)).astype(np.float32)
+    inv = (np.float32(Q15_MAX) / amax).astype(np.float32)
+    v = (x * inv[:, None]).astype(np.float32)
+    q = np.trunc(v + np.where(v >= 0, np.float32(0.5), np.float32(-0.5))).astype(np.int32)
+    return q, (amax / np.float32(Q15_MAX)).astype(np.float32)
+
+
+def int8_forward(qlayers: tuple[QDense, ...], obs: np.ndarray) -> np.ndarray:
+    """The C's arithmetic for ``qlayers`` on ``obs`` [B, in]: int8 layers take their input as q15 (``q15_vector``),
+    accumulate ``q . x_q`` exactly in integers and scale once per neuron; float layers as in float32. The
+    reference the int8w C must reproduce (up to float32 rounding order)."""
+    x = np.asarray(obs, dtype=np.float32)
+    for ql in qlayers:
+        if ql.is_int8:
+            xq, xs = q15_vector(x)
+            acc = xq.astype(np.int64) @ ql.weight.astype(np.int64).T
+            z = acc.astype(np.float64) * (ql.scale.astype(np.float64)[None, :] * xs.astype(np.float64)[:, None])
+            z = z + ql.bias.astype(np.float64)
+        else:
+            z = x.astype(np.float64) @ ql.weight.astype(np.float64).T + ql.bias.astype(np.float64)
+        x = _act(z, ql.activation).astype(np.float32)
+    return x
