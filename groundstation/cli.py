@@ -129,7 +129,13 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--flight-config", default=None, metavar="TOML", help="TOML with a [flight] table")
     p.add_argument("--seed", type=int, default=d.seed, help="obstacles, start positions, noise (default 0)")
     p.add_argument("--base-port", type=int, default=None, help="UDP port of drone 0 (default: a free range)")
+    _add_no_separation(p)
     p.set_defaults(func=_run_demo)
+
+
+def _add_no_separation(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-separation", action="store_true",
+                   help="fly without the separation filter, for comparison only: drones may touch and crash")
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -140,7 +146,7 @@ def _run_demo(args: argparse.Namespace) -> int:
     opts = DemoOptions(duration=args.duration, speed=args.speed, kill_link=args.kill_link, loss=args.loss,
                        models=args.models, engine=args.engine, spec=args.spec, fence=args.fence, anchors=args.anchors,
                        flight=args.flight_config, seed=args.seed, json_path=args.json, log_path=args.log,
-                       plot_path=args.plot, base_port=args.base_port)
+                       plot_path=args.plot, base_port=args.base_port, separation=not args.no_separation)
     try:
         res = run_demo(opts)
     except (DemoError, PolicyError, SpecError, PreflightError, SimError) as exc:
@@ -169,6 +175,7 @@ def _add_fly(subparsers: argparse._SubParsersAction) -> None:
     _add_fleet_arg(p)
     p.add_argument("--duration", type=float, default=60.0, help="mission time [s] (default 60)")
     p.add_argument("--log", default=None, metavar="PATH", help="write the flight log (JSON lines) here")
+    _add_no_separation(p)
     p.set_defaults(func=_run_fly)
 
 
@@ -181,7 +188,9 @@ def _fleet_errors():
 
 
 def _run_fly(args: argparse.Namespace) -> int:
-    from groundstation.fleet import FleetConfig, fly
+    import dataclasses
+
+    from groundstation.fleet import FleetConfig, fly, load_separation
     stop = threading.Event()
     presses = []
 
@@ -196,9 +205,12 @@ def _run_fly(args: argparse.Namespace) -> int:
 
     try:
         fleet, flight = FleetConfig.from_toml(args.fleet)
+        separation = load_separation(args.fleet)
+        if args.no_separation:
+            separation = dataclasses.replace(separation, enabled=False)
         previous = signal.signal(signal.SIGINT, on_sigint)
         try:
-            res = fly(fleet, flight, args.duration, args.log, stop)
+            res = fly(fleet, flight, args.duration, args.log, stop, separation=separation)
         finally:
             signal.signal(signal.SIGINT, previous)
     except _fleet_errors() as exc:

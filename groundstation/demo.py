@@ -9,6 +9,12 @@ drones out of them). Preflight, role assignment, staggered takeoff, the mission 
 (``runtime.metrics``, one episode per ``spec.timing.episode_steps`` control periods), link statistics, a
 JSON-lines flight log and a picture.
 
+Separation: every setpoint passes the separation filter (``groundstation.separation``) unless
+``separation=False`` (``--no-separation``, for comparisons only). The simulated drones crash when two touch;
+the results count those contacts (``drone_contacts``), the closest two airborne drones came (ground truth,
+``min_pair_distance``) and how often a pair came closer than ``min_distance``. A capture is a pursuer-team
+drone within ``capture_distance`` of an evader, never contact.
+
 Failure injection: ``kill_link = (drone, t)`` makes that simulated drone stop answering ``t`` s into the
 mission; ``loss = p`` drops every datagram in either direction with probability ``p`` (a relay between cflib
 and the simulators) once the links are up. cflib's UDP driver does not retransmit, so a lost table-of-contents
@@ -41,15 +47,17 @@ from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, KeepOut, in_safe_set
+from groundstation.separation import SeparationConfig
 from groundstation.sim.swarm import SimSwarm, free_base_port
 from runtime.metrics import MetricsAccumulator
 from runtime.policy import load_models, read_manifest
-from runtime.spec import SwarmSpec
+from runtime.spec import SwarmSpec, load_toml
 
 log = logging.getLogger(__name__)
 
 RESULT_KEYS = ("mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage",
-               "collisions_per_episode", "episodes", "landed", "geofence_violations", "setpoint_latency_p99_ms")
+               "collisions_per_episode", "episodes", "landed", "geofence_violations", "setpoint_latency_p99_ms",
+               "drone_contacts", "min_pair_distance", "pairs_below_min_distance", "separation")
 LANDED_Z = 0.05
 """A simulated drone at or below this height with its motors off has landed [m] (``landed``; ``locked`` counts
 those of them whose firmware cut the motors instead: a watchdog after link loss, or an emergency stop)."""
@@ -93,6 +101,9 @@ class DemoOptions:
     plot_path: str | None = None
     base_port: int | None = None
     telemetry_period_ms: int = 20
+    separation: bool = True
+    """False: fly without the separation filter (``--no-separation``), for comparisons only. The
+    ``[separation]`` table of ``flight`` (when given) sets the filter's parameters."""
 
 
 # ---- setup ---------------------------------------------------------------------------------------
@@ -200,10 +211,14 @@ class EpisodeMetrics:
     """``runtime.metrics`` over the flight: one episode per ``spec.timing.episode_steps`` control periods (a
     shorter last episode counts too). Agents are the actors in spec order at the measured position of the
     drone flying each; an actor left without a drone stays where its last drone was (and takes no part in
-    contacts)."""
+    contacts). A capture is the onset of a pursuer-team agent within ``capture_distance`` of an evader."""
 
-    def __init__(self, spec: SwarmSpec, obstacles: np.ndarray) -> None:
+    def __init__(self, spec: SwarmSpec, obstacles: np.ndarray, capture_distance: float | None = None) -> None:
         self.spec = spec
+        self.capture_distance = spec.sensing.sensing_range if capture_distance is None else capture_distance
+        nt = spec.team.n_team
+        self.cross = np.zeros((spec.n_agents, spec.n_agents), dtype=bool)
+        self.cross[:nt, nt:] = self.cross[nt:, :nt] = True
         self.acc = MetricsAccumulator(spec, 1)
         self.obstacle_pos = obstacles[None, :, :2]
         self.obstacle_radius = obstacles[None, :, 2]
@@ -218,7 +233,9 @@ class EpisodeMetrics:
             p = pos[None]
             d = p[:, :, None, :] - p[:, None, :, :]
             dist = np.sqrt((d * d).sum(-1))
-            contacts = (dist <= self.radius[:, None] + self.radius[None, :]) & ~np.eye(len(pos), dtype=bool)
+            # pursuer-team x evader pairs "touch" (a capture) within capture distance; same-team pairs on contact
+            reach = np.where(self.cross, self.capture_distance, self.radius[:, None] + self.radius[None, :])
+            contacts = (dist <= reach) & ~np.eye(len(pos), dtype=bool)
             contacts &= present[None, :, None] & present[None, None, :]
             od = np.linalg.norm(pos[:, None, :] - self.obstacle_pos[0][None], axis=-1)
             obst = ((od <= self.obstacle_radius[0][None] + self.radius[:, None]).any(-1) & present)[None]
@@ -280,6 +297,9 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     manifest = read_manifest(opts.models)  # ModelNotFound / ModelCorrupted say how to export
     flight_cfg = FlightConfig.from_toml(opts.flight) if opts.flight else FlightConfig()
     flight_cfg = dataclasses.replace(flight_cfg, speed_scale=flight_cfg.speed_scale * opts.speed)
+    separation = SeparationConfig.from_dict(load_toml(opts.flight).get("separation", {})) if opts.flight \
+        else SeparationConfig()
+    separation = dataclasses.replace(separation, enabled=separation.enabled and opts.separation)
     obstacles = draw_obstacles(spec, opts.seed)
     fence = dataclasses.replace(FenceConfig.from_toml(opts.fence),
                                 keep_out=tuple(KeepOut(float(x), float(y), float(r)) for x, y, r in obstacles))
@@ -291,7 +311,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     base = opts.base_port if opts.base_port is not None else free_base_port(n, seed=opts.seed)
     starts = start_positions(fence, n, opts.seed)
     recorder = JsonlRecorder(opts.log_path)
-    metrics = EpisodeMetrics(spec, obstacles)
+    metrics = EpisodeMetrics(spec, obstacles, separation.capture_distance)
+    pairs = PairMonitor(separation.min_distance, 2 * max(spec.per_agent("radius")))
     t_start = time.monotonic()
     result: dict[str, Any] = {}
     with SimSwarm(n, base_port=base, seed=opts.seed, start_positions=starts, latency_probe=True) as sims:
@@ -306,9 +327,9 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             by_id = dict(zip(ids, links))
             session = FlightSession(by_id, teams, fence, flight_cfg,
                                     actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents],
-                                    record=recorder, latency_probe=True)
+                                    record=recorder, latency_probe=True, separation=separation)
             try:
-                _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result)
+                _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result, pairs)
             except KeyboardInterrupt:
                 _wait_on_ground(sims, 4.0)
                 on_ground = sum(1 for i in range(n) if _on_ground(sims.truth(i)))
@@ -320,6 +341,10 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
                                    result.pop("t_end"), t_start, t_connected, kill, result.pop("kill_link_at", None),
                                    relay))
             result["obstacles"] = [[round(float(v), 3) for v in o] for o in obstacles]
+            result.update(_separation_results(session, sims, pairs))
+            recorder({"t": round(time.monotonic() - session._t0, 4), "event": "drone_contacts", "drone": None,
+                      "detail": f"{result['drone_contacts']} drone contacts in the simulator",
+                      "count": result["drone_contacts"], "contacts": result["drone_contact_events"]})
         finally:
             close_links(links)
             if relay is not None:
@@ -334,7 +359,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     return result
 
 
-def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacles, metrics, kill, result) -> None:
+def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacles, metrics, kill, result,
+         pairs: "PairMonitor") -> None:
     """Preflight to landing (the session lands everyone on the way out, whatever happens)."""
     manifest_hash = read_manifest(opts.models).spec.hash
     with session:
@@ -356,11 +382,56 @@ def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacl
                     result["kill_link_at"] = time.monotonic()
                 if not session.flying():
                     break
+                pairs.update([sims.truth(i) for i in range(sims.n)])
                 time.sleep(0.01)
         t_end = time.monotonic()
         sent1 = [link.stats() for link in links]
         session.stop_mission()
     result.update(pilot=pilot, sent0=sent0, sent1=sent1, t_mission=t_mission, t_end=t_end)
+
+
+class PairMonitor:
+    """The closest two airborne simulated drones came (ground truth, centre to centre, 3-D) during the mission,
+    and how many times a pair came closer than ``min_distance`` or within ``contact`` (onsets)."""
+
+    def __init__(self, min_distance: float, contact: float) -> None:
+        self.min_distance, self.contact = min_distance, contact
+        self.closest = math.inf
+        self.below = 0
+        self.touching = 0
+        self.samples = 0
+        self._below: np.ndarray | None = None
+        self._touch: np.ndarray | None = None
+
+    def update(self, truths: list) -> None:
+        p = np.array([t.position for t in truths])
+        up = np.array([t.motors_on and t.position[2] > LANDED_Z for t in truths])
+        d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+        pair = up[:, None] & up[None] & ~np.eye(len(p), dtype=bool)
+        below, touch = (d < self.min_distance) & pair, (d <= self.contact) & pair
+        if self._below is None:
+            self._below, self._touch = np.zeros_like(below), np.zeros_like(touch)
+        self.below += int((below & ~self._below).sum()) // 2
+        self.touching += int((touch & ~self._touch).sum()) // 2
+        self._below, self._touch = below, touch
+        if pair.any():
+            self.closest = min(self.closest, float(d[pair].min()))
+        self.samples += 1
+
+
+def _separation_results(session: FlightSession, sims: SimSwarm, pairs: PairMonitor) -> dict:
+    contacts = getattr(sims, "drone_contacts", None)  # the simulator's crash on contact (issue 16, sim part)
+    events = getattr(sims, "contact_events", None) or []
+    return {
+        "separation": session.separation_stats(),
+        "drone_contacts": contacts,
+        "drone_contact_events": [[round(float(t), 3), a, b] for t, a, b in events],
+        "min_pair_distance": round(pairs.closest, 4) if math.isfinite(pairs.closest) else None,
+        "pairs_below_min_distance": pairs.below,
+        "pairs_touching": pairs.touching,
+        "min_distance": session.separation_config.min_distance,
+        "capture_distance": session.separation_config.capture_distance,
+    }
 
 
 def _on_ground(truth) -> bool:
@@ -495,7 +566,11 @@ def format_summary(res: dict[str, Any]) -> str:
         f"max {f(res['mean_max_dist'])} m",
         f"tracking rate {f(res['tracking_rate'])}   coverage {f(res['coverage'])}   "
         f"collisions/episode {f(res['collisions_per_episode'], 2)}   captures/episode "
-        f"{f(res['captures_per_episode'], 2)}",
+        f"{f(res['captures_per_episode'], 2)} (within {f(res['capture_distance'], 2)} m)",
+        f"separation {'on' if res['separation']['enabled'] else 'OFF'} (min {f(res['min_distance'], 2)} m): drone "
+        f"contacts {f(res['drone_contacts'])}, closest pair {f(res['min_pair_distance'])} m, "
+        f"{res['pairs_below_min_distance']} times closer than min, {res['pairs_touching']} touching (truth); "
+        f"{res['separation'].get('braked_setpoints', 0)} braked setpoints",
         f"landed {res['landed']}/{res['drones']} ({res['locked']} locked)   geofence violations "
         f"{res['geofence_violations']}   ground-station stalls {res['ground_station_stalls']}",
         f"measurement-to-setpoint at the drone (through cflib and UDP) p50 {f(res['setpoint_latency_p50_ms'], 2)} ms "

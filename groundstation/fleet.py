@@ -1,7 +1,8 @@
 """Real drones: the fleet file, and ``swarm-gs fly / land / status`` over it.
 
 ``fleet.toml`` (see ``configs/fleet_example.toml``) names every drone by URI and team and points at the
-models, the fence and the LPS anchor layout; an optional ``[flight]`` table overrides ``FlightConfig``.
+models, the fence and the LPS anchor layout; an optional ``[flight]`` table overrides ``FlightConfig`` and an
+optional ``[separation]`` table ``separation.SeparationConfig`` (``load_separation``).
 ``fly`` is the demo's code path with ``radio://`` links: preflight, role assignment, staggered takeoff, the
 mission flown by the exported actors, landing (also on Ctrl-C and on any error). The fence's keep-out
 circles are the obstacles the actors observe, so measure the real ones into the fence file.
@@ -26,6 +27,7 @@ from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, check_position
+from groundstation.separation import SeparationConfig
 from runtime.policy import load_models, read_manifest
 from runtime.spec import ENGINES, SpecError, SwarmSpec, from_mapping, load_toml
 
@@ -97,9 +99,9 @@ class FleetConfig:
         """The fleet and its flight settings; relative paths resolved against the file's folder."""
         p = Path(path)
         doc = load_toml(p)
-        unknown = sorted(set(doc) - {"fleet", "flight"})
+        unknown = sorted(set(doc) - set(TABLES))
         if unknown:
-            raise SpecError(f"{p}: unknown table [{unknown[0]}]; a fleet file has [fleet] and [flight]")
+            raise SpecError(f"{p}: unknown table [{unknown[0]}]; a fleet file has [fleet], [flight] and [separation]")
         fleet = from_mapping(cls, doc.get("fleet", {}), "fleet")
         if not fleet.drones:
             raise SpecError(f"{p}: fleet.drones: the fleet has no drones: add [[fleet.drones]] tables with id, uri "
@@ -116,6 +118,15 @@ class FleetConfig:
         fleet = dataclasses.replace(fleet, models=resolve(fleet.models), spec=resolve(fleet.spec),
                                     fence=resolve(fleet.fence), anchors=resolve(fleet.anchors))
         return fleet, flight
+
+
+TABLES = ("fleet", "flight", "separation")
+"""The tables of a fleet file."""
+
+
+def load_separation(path: str | Path) -> SeparationConfig:
+    """The fleet file's ``[separation]`` table (defaults when absent); unknown keys name the field."""
+    return SeparationConfig.from_dict(load_toml(path).get("separation", {}))
 
 
 def open_fleet(fleet: FleetConfig, link_loss_timeout: float = 0.25) -> dict[str, Link]:
@@ -152,7 +163,8 @@ def obstacles_from_fence(fence: FenceConfig, spec: SwarmSpec) -> np.ndarray:
 
 
 def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str | None = None,
-        stop: threading.Event | None = None, echo: Callable[[str], None] = print) -> dict[str, Any]:
+        stop: threading.Event | None = None, echo: Callable[[str], None] = print,
+        separation: SeparationConfig = SeparationConfig()) -> dict[str, Any]:
     """Fly the fleet's mission for ``duration`` s (or until ``stop`` is set), then land everyone."""
     spec = SwarmSpec.from_toml(fleet.spec) if fleet.spec else SwarmSpec()
     manifest = read_manifest(fleet.models)
@@ -166,7 +178,8 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
     links = open_fleet(fleet, flight.link_loss_timeout)
     try:
         session = FlightSession(links, teams, fence, flight,
-                                actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents], record=recorder)
+                                actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents], record=recorder,
+                                separation=separation)
         with session:
             session.preflight(spec_hash=spec.hash, models_spec_hash=manifest.spec.hash,
                               require_all=fleet.require_all)
@@ -183,6 +196,7 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
             session.stop_mission()
         return {"final_status": {d: s.value for d, s in session.statuses().items()},
                 "geofence_violations": session.geofence_violations(),
+                "separation": session.separation_stats(),
                 "events": [(round(e.t - session._t0, 3), e.drone, e.kind, e.detail) for e in session.events
                            if e.kind != "status"]}
     finally:

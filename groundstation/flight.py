@@ -13,8 +13,11 @@
 Setpoints. The per-drone runtimes hand in horizontal velocity commands (``set_command``); the session turns
 them into setpoints at ``setpoint_rate``. A setpoint is computed when a drone's telemetry arrives and its
 setpoint is due, from the measurement that just arrived (this keeps measurement-to-setpoint latency to the
-processing time): horizontal command + an altitude-hold term, through the geofence (``safety.Geofence``),
-then ``link.send_velocity``. Nothing else sends setpoints.
+processing time): horizontal command, through the separation filter (``separation.JointFilter``: every
+drone's latest tracker position and velocity, solved jointly at most once per setpoint period and cached for
+the other drones' threads), + an altitude-hold term, through the geofence (``safety.Geofence``), then
+``link.send_velocity``. Nothing else sends setpoints. A holding drone's zero velocity needs no filter (zero is
+the filter's own brake); to the filter it, and every drone not flying the mission, is an obstacle.
 
 Failsafes, per drone, judged by the supervisor thread every ``1 / supervisor_rate`` s; the others fly on:
 
@@ -202,6 +205,8 @@ class _Drone:
     invalid_since: float | None = None
     low_battery_since: float | None = None
     land_sent_t: float = -math.inf
+    land_acked: bool = False
+    """The vehicle's planner was seen flying the latest land command (a finished landing is not re-sent)."""
     fault: str | None = None
     retire_actor: bool = False
     fence_breach: bool = False
@@ -231,7 +236,8 @@ class FlightSession:
     def __init__(self, links: Mapping[str, Link], teams: Mapping[str, str], fence: FenceConfig,
                  config: FlightConfig = FlightConfig(), actors: Iterable[Any] = (),
                  tracker: PositionTracker | None = None,
-                 record: Callable[[dict], None] | None = None, latency_probe: bool = False) -> None:
+                 record: Callable[[dict], None] | None = None, latency_probe: bool = False,
+                 separation: SeparationConfig = SeparationConfig()) -> None:
         if not links:
             raise ValueError("FlightSession needs at least one link")
         if latency_probe and not all(link.uri.startswith("udp://") for link in links.values()):
@@ -264,6 +270,14 @@ class FlightSession:
         self._mission = False
         self._callbacks: dict[str, Callable[[Telemetry], None]] = {}
         self._period = 1.0 / config.setpoint_rate
+        self.separation_config = separation
+        self.separation: JointFilter | None = None
+        """The separation filter; None only with ``separation.enabled = False`` (comparisons)."""
+        if separation.enabled:
+            # latency: the cached solution's age (one period) + the measurement's age and the link (one more)
+            limits = Limits(separation.min_distance, self._period, fence.max_decel, fence.max_speed,
+                            latency=2.0 * self._period)
+            self.separation = JointFilter(limits, self._separation_snapshot, interval=self._period)
         self._t0 = time.monotonic()
         self._next_record = 0.0
         self._last_tick = time.monotonic()
@@ -550,8 +564,9 @@ class FlightSession:
                     if pos is None:
                         return  # the supervisor moves it to HOLDING
                     v = np.zeros(3)
-                    if self._mission and self.assignment.by_drone.get(d.id) is not None:
-                        v[:2] = d.command
+                    v[:2] = self._desired(d)
+                    if self.separation is not None:
+                        v[:2] = self.separation.command(d.id, now)
                     v[2] = min(max(cfg.altitude_gain * (self.height - pos[2]), -cfg.max_vertical_speed),
                                cfg.max_vertical_speed)
                     out = self.geofence.filter_velocity(d.id, pos, v, cfg.fence_horizon)
@@ -574,6 +589,40 @@ class FlightSession:
                 self.latencies.append(sent - sample.t)
 
         return on_telemetry
+
+    def _desired(self, d: _Drone) -> np.ndarray:
+        """The horizontal command [m/s] the drone would fly without the separation filter."""
+        if self._mission and self.assignment.by_drone.get(d.id) is not None:
+            return d.command
+        return np.zeros(2)
+
+    def _separation_snapshot(self) -> Snapshot:
+        """Every drone the tracker can place, for the separation filter: those flying the mission with a fresh
+        position obey it; the others (taking off, holding, landing, lost, on the ground) are obstacles at their
+        last known position and velocity."""
+        ids, pos, vel, want, ctrl, prev = [], [], [], [], [], []
+        now = time.monotonic()
+        for d in self.drones.values():
+            s = self.tracker.get(d.id)
+            if s is None:
+                continue
+            controlled = d.status is DroneStatus.FLYING and self.tracker.position(d.id) is not None
+            sp = d.setpoint
+            in_flight = sp is not None and now - d.setpoint_t <= 2 * self._period
+            ids.append(d.id)
+            pos.append(s.position[:2])
+            vel.append(s.velocity[:2])
+            want.append(self._desired(d) if controlled else np.zeros(2))
+            ctrl.append(controlled)
+            prev.append(sp[:2] if in_flight and controlled else s.velocity[:2])
+        as2 = lambda rows: np.array(rows, dtype=float).reshape(-1, 2)  # noqa: E731
+        return Snapshot(ids, as2(pos), as2(vel), as2(want), np.array(ctrl, dtype=bool), as2(prev))
+
+    def separation_stats(self) -> dict[str, Any]:
+        """The filter's counters (solves, methods, braked setpoints); ``{"enabled": False}`` without it."""
+        if self.separation is None:
+            return {"enabled": False}
+        return {"enabled": True, "min_distance": self.separation_config.min_distance, **self.separation.stats()}
 
     def _last_position(self, d: _Drone) -> np.ndarray:
         s = self.tracker.get(d.id)
@@ -723,7 +772,7 @@ class FlightSession:
     def _send_land(self, d: _Drone, now: float) -> None:
         s = self.tracker.get(d.id)
         z = s.position[2] if s is not None and math.isfinite(s.position[2]) else self.height
-        d.land_sent_t = now
+        d.land_sent_t, d.land_acked = now, False
         try:
             d.link.land(max(z, 0.1) / self.config.land_speed + 0.2)
         except LinkError as exc:
@@ -738,8 +787,10 @@ class FlightSession:
             if d.status is not DroneStatus.LANDING:
                 continue
             tel = d.link.telemetry()
+            # DISARMED: ArduPilot and PX4 disarm by themselves once down
             if tel is not None and not d.link.link_lost and tel.flight_state in (FlightState.LANDED,
-                                                                                 FlightState.LOCKED):
+                                                                                 FlightState.LOCKED,
+                                                                                 FlightState.DISARMED):
                 with d.lock:
                     self._set_status(d, DroneStatus.LANDED, f"on the ground at z = {tel.position[2]:.2f} m")
                 if tel.flight_state is FlightState.LOCKED:
@@ -747,6 +798,12 @@ class FlightSession:
             elif d.link.link_lost:
                 with d.lock:
                     self._set_status(d, DroneStatus.LOST, "link lost while landing")
+            elif tel is not None and tel.planner_active and tel.t > d.land_sent_t:
+                # Taken. Not again once the landing has ended: a Crazyflie reports "flying" for 2 s after
+                # touchdown (supervisor.c), and a land sent to its idle planner would spin the motors again.
+                d.land_acked = True
+            elif d.land_acked:
+                continue
             elif tel is not None and tel.planner_active is False and tel.t > d.land_sent_t \
                     and now - d.land_sent_t >= LAND_CONFIRM_RETRY:
                 self._send_land(d, now)

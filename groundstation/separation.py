@@ -46,6 +46,7 @@ failed check give a brake (zero velocity), never an unsafe command.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -210,70 +211,64 @@ def _pairs(pos, vel, prev, s, active, lim: Limits) -> tuple[_Pairs, np.ndarray]:
     return _Pairs(i, j, n, gap, k_i, k_j, tier), bad
 
 
-def _rows(pp: _Pairs, hl: np.ndarray, free: np.ndarray, col: np.ndarray) -> tuple[list, list]:
-    """Linear constraints ``sum coef * u[col] <= rhs`` on the free drones' commands: (entries, rhs)."""
-    entries: list[list[tuple[int, np.ndarray]]] = []
-    rhs: list[float] = []
-    for q in range(len(pp.i)):
-        i, j, n, g = pp.i[q], pp.j[q], pp.n[q], pp.gap[q]
-        fi, fj = free[i], free[j]
-        if pp.tier[q] == NO_CLOSING:
-            if fi:
-                entries.append([(col[i], -n)])
-                rhs.append(0.0)
-            if fj:
-                entries.append([(col[j], n)])
-                rhs.append(0.0)
-            continue
-        ai, aj = -hl[i] * n, hl[j] * n  # Hl_i(-n.u_i), Hl_j(n.u_j) as coefficient vectors
-        if fi and fj:
-            entries.append([(col[i], ai), (col[j], aj)])
-            rhs.append(g)
-        if fi:
-            entries.append([(col[i], ai)])
-            rhs.append(g - hl[j] * pp.k_j[q])
-        if fj:
-            entries.append([(col[j], aj)])
-            rhs.append(g - hl[i] * pp.k_i[q])
-    return entries, rhs
+def _rows(pp: _Pairs, hl: np.ndarray, free: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear constraints ``A x <= b`` on the free drones' commands ``x = [u_0x, u_0y, u_1x, ...]``."""
+    m = int(free.sum())
+    fi, fj = free[pp.i], free[pp.j]
+    normal, stop = pp.tier == NORMAL, pp.tier == NO_CLOSING
+    ci, cj = -hl[pp.i][:, None] * pp.n, hl[pp.j][:, None] * pp.n  # Hl_i(-n.u_i), Hl_j(n.u_j) as coefficients
+    blocks_a, blocks_b = [], []
+
+    def add(sel: np.ndarray, coef_i: np.ndarray | None, coef_j: np.ndarray | None, rhs: np.ndarray) -> None:
+        k = int(sel.sum())
+        if not k:
+            return
+        a = np.zeros((k, 2 * m))
+        r = np.arange(k)[:, None]
+        for idx, coef in ((pp.i, coef_i), (pp.j, coef_j)):
+            if coef is not None:
+                a[r, 2 * col[idx[sel]][:, None] + np.array([0, 1])] = coef[sel]
+        blocks_a.append(a)
+        blocks_b.append(np.broadcast_to(rhs, sel.shape)[sel])
+
+    add(normal & fi & fj, ci, cj, pp.gap)
+    add(normal & fi, ci, None, pp.gap - hl[pp.j] * pp.k_j)
+    add(normal & fj, None, cj, pp.gap - hl[pp.i] * pp.k_i)
+    add(stop & fi, -pp.n, None, np.zeros(len(pp.i)))  # too close, or no slack for the margin: stop closing
+    add(stop & fj, None, pp.n, np.zeros(len(pp.i)))
+    if not blocks_a:
+        return np.zeros((0, 2 * m)), np.zeros(0)
+    return np.vstack(blocks_a), np.concatenate(blocks_b)
 
 
-def _violation(entries, rhs, u: np.ndarray, col: np.ndarray, free_idx: np.ndarray) -> float:
-    worst = 0.0
-    x = u[free_idx]
-    for terms, b in zip(entries, rhs):
-        lhs = sum(float(c @ x[k]) for k, c in terms)
-        worst = max(worst, lhs - b)
-    return worst
+def _violation(a: np.ndarray, b: np.ndarray, u: np.ndarray, free_idx: np.ndarray) -> float:
+    if not len(b):
+        return 0.0
+    return float(max(0.0, (a @ u[free_idx].reshape(-1) - b).max()))
 
 
-def _solve_qp(entries, rhs, desired: np.ndarray, s: np.ndarray) -> np.ndarray | None:
+@functools.lru_cache(maxsize=64)
+def _hessian(m: int):
+    """2 I for ``m`` drones' commands (the objective sum |u - desired|^2), built once per size."""
+    from scipy import sparse
+    return sparse.identity(2 * m, format="csc") * 2.0
+
+
+def _solve_qp(a: np.ndarray, b: np.ndarray, desired: np.ndarray, s: np.ndarray) -> np.ndarray | None:
     """OSQP over the free drones' commands; None when it does not report a solution."""
     import osqp
     from scipy import sparse
 
     m = len(desired)
-    rows, cols, vals, b = [], [], [], []
-    r = 0
-    for terms, bound in zip(entries, rhs):
-        for k, c in terms:
-            rows += [r, r]
-            cols += [2 * k, 2 * k + 1]
-            vals += [float(c[0]), float(c[1])]
-        b.append(bound - min(QP_MARGIN, max(bound, 0.0) / 2))  # u = 0 must stay feasible where it was
-        r += 1
-    for k in range(m):  # |u_k| <= s_k keeps the braking bound H valid
-        for face in _OCTAGON:
-            rows += [r, r]
-            cols += [2 * k, 2 * k + 1]
-            vals += [float(face[0]), float(face[1])]
-            b.append(s[k] * _APOTHEM)
-            r += 1
-    a = sparse.csc_matrix((vals, (rows, cols)), shape=(r, 2 * m))
-    p = sparse.identity(2 * m, format="csc") * 2.0
-    prob = osqp.OSQP()
-    prob.setup(p, -2.0 * desired.reshape(-1), a, np.full(r, -np.inf), np.array(b), verbose=False,
-               polishing=True, eps_abs=1e-7, eps_rel=1e-7, max_iter=10000)
+    # u = 0 must stay feasible where it was: tighten by QP_MARGIN only rows with room for it
+    tight = b - np.minimum(QP_MARGIN, np.maximum(b, 0.0) / 2)
+    octagon = np.kron(np.eye(m), _OCTAGON)  # |u_k| <= s_k keeps the braking bound H valid
+    a_all = sparse.csc_matrix(np.vstack([a, octagon]))
+    b_all = np.concatenate([tight, np.repeat(s * _APOTHEM, len(_OCTAGON))])
+    prob = osqp.OSQP(algebra="builtin")  # named: otherwise every OSQP() probes for the CUDA and MKL builds
+    prob.setup(_hessian(m), -2.0 * desired.reshape(-1), a_all,
+               np.full(len(b_all), -np.inf), b_all, verbose=False, polishing=True, eps_abs=1e-7, eps_rel=1e-7,
+               max_iter=10000)
     res = prob.solve(raise_error=False)
     if res.info.status not in ("solved", "solved inaccurate") or res.x is None or not np.all(np.isfinite(res.x)):
         log.debug("separation QP: %s", res.info.status)
@@ -337,18 +332,18 @@ def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np
     col = np.full(n, -1)
     col[free_idx] = np.arange(len(free_idx))
     pp = pp.take(~hopeless)
-    entries, rhs = _rows(pp, hl, free, col)
-    if _violation(entries, rhs, want, col, free_idx) <= VERIFY_TOL:
+    a, b = _rows(pp, hl, free, col)
+    if _violation(a, b, want, free_idx) <= VERIFY_TOL:
         out[free] = want[free]
         return SeparationResult(out, braked, "unchanged")
     method = "pairwise"
     u = None
     if use_qp and len(free_idx):
-        x = _solve_qp(entries, rhs, want[free_idx], s[free_idx])
+        x = _solve_qp(a, b, want[free_idx], s[free_idx])
         if x is not None:
             u = np.zeros((n, 2))
             u[free_idx] = x
-            if _violation(entries, rhs, u, col, free_idx) <= VERIFY_TOL and np.all(
+            if _violation(a, b, u, free_idx) <= VERIFY_TOL and np.all(
                     np.linalg.norm(x, axis=1) <= s[free_idx] + VERIFY_TOL):
                 method = "qp"
             else:
@@ -356,7 +351,7 @@ def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np
                 u = None
     if u is None:
         u = _pairwise(pp, hl, free, want)
-        if _violation(entries, rhs, u, col, free_idx) > VERIFY_TOL:  # cannot happen; never send it anyway
+        if _violation(a, b, u, free_idx) > VERIFY_TOL:  # cannot happen; never send it anyway
             log.error("separation fallback failed its own check: braking every controlled drone")
             return SeparationResult(out, ctrl.copy(), "brake")
     out[free] = u[free]

@@ -59,6 +59,14 @@ def test_short_demo_flies_loses_a_link_lands_and_reports(tmp_path):
     assert {row["role"] for row in flying} == {"pursuer", "scout", "evader"}
     assert any(row.get("event") == "mission_start" for row in rows)
     assert (out / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # separation: on by default, every flying setpoint through it; contacts counted by the simulator
+    sep = res["separation"]
+    assert sep["enabled"] and sep["solves"] > 0 and sum(sep["methods"].values()) == sep["solves"]
+    assert res["drone_contacts"] == 0 and res["pairs_touching"] == 0
+    assert res["min_pair_distance"] > 0 and res["capture_distance"] == 0.5 and res["min_distance"] == 0.35
+    assert "separation on (min 0.35 m): drone contacts 0" in r.stdout and "(within 0.50 m)" in r.stdout
+    contact_rows = [row for row in rows if row.get("event") == "drone_contacts"]
+    assert len(contact_rows) == 1 and contact_rows[0]["count"] == 0
 
 
 def test_demo_usage_errors_are_one_line(tmp_path, capsys):
@@ -73,3 +81,12 @@ def test_demo_usage_errors_are_one_line(tmp_path, capsys):
     assert "--loss" in capsys.readouterr().err
     assert cli.main(["demo", "--models", str(models), "--kill-link", "cf99@1"]) == 2
     assert "cf99" in capsys.readouterr().err
+
+
+def test_no_separation_is_for_comparison_only(capsys):
+    args = cli.build_parser().parse_args(["demo", "--no-separation"])
+    assert args.no_separation
+    assert not cli.build_parser().parse_args(["fly", "--fleet", "x.toml"]).no_separation
+    with pytest.raises(SystemExit):
+        cli.main(["demo", "--help"])
+    assert "comparison only" in " ".join(capsys.readouterr().out.split())

@@ -13,7 +13,7 @@ from flight_fixtures import on_ground, open_sim_links, quick_flight, small_spec,
 from groundstation import cli  # noqa: E402
 from groundstation.demo import draw_obstacles, start_positions  # noqa: E402
 from groundstation.flight import DroneStatus, close_links, FlightConfig, FlightSession, PreflightError  # noqa: E402
-from groundstation.fleet import FleetConfig  # noqa: E402
+from groundstation.fleet import FleetConfig, load_separation  # noqa: E402
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM  # noqa: E402
 from groundstation.safety import FenceConfig, FenceStatus, check_position  # noqa: E402
 from groundstation.sim.swarm import SimSwarm, free_base_port  # noqa: E402
@@ -67,6 +67,16 @@ def test_fleet_file_errors_name_the_field(tmp_path):
         FleetConfig.from_toml(bad)
     fleet, flight = FleetConfig.from_toml("configs/fleet_example.toml")
     assert len(fleet.drones) == 4 and flight.speed_scale == 0.5 and fleet.engine == "onnxruntime"
+    sep = load_separation("configs/fleet_example.toml")
+    assert sep.enabled and sep.min_distance == pytest.approx(0.35) and sep.capture_distance == 0.5
+    bad.write_text('[fleet]\n[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n'
+                   '[separation]\nmin_distanse = 0.3\n')
+    FleetConfig.from_toml(bad)  # the table is known ...
+    with pytest.raises(SpecError, match=r"separation\.min_distanse: unknown key"):  # ... its keys are checked
+        load_separation(bad)
+    bad.write_text('[fleet]\n[seperation]\n')
+    with pytest.raises(SpecError, match=r"unknown table \[seperation\]"):
+        FleetConfig.from_toml(bad)
 
 
 def test_demo_layout_helpers():
@@ -88,7 +98,7 @@ def test_preflight_names_each_failing_drone():
     starts = start_positions(fence, 3, seed=1)
     starts[2, :2] = (3.5, 0.0)  # outside the fence
     with SimSwarm(3, base_port=free_base_port(3, seed=21), seed=1, start_positions=starts) as sims:
-        sims.model.charge_as[1] = 0.3 * sims.model.params.battery_capacity_as
+        sims.model.charge_as[1] = 0.1 * sims.model.params.battery_capacity_as  # 3.77 V on the LiPo curve
         session, links = _session(sims, fence)
         try:
             with session:
@@ -209,3 +219,53 @@ def test_fleet_commands_over_udp(tmp_path, capsys):
         assert cli.main(["land", "--fleet", str(fleet)]) == 0
         assert "cf0: landed" in capsys.readouterr().out
         assert on_ground(sims.truth(0))
+
+
+# ---- separation --------------------------------------------------------------------------------
+
+def _head_on(separation, seed: int):
+    """Two drones 1.4 m apart commanded straight at each other at 1 m/s for 3 s; returns the closest their
+    true centres came, the closest the tracker measured, the simulator's contact count and the session."""
+    fence = FenceConfig.from_spec(small_spec(), box=(-2.0, 2.0, -2.0, 2.0))
+    starts = np.array([[-0.7, 0.0, 0.0], [0.7, 0.0, 0.0]])
+    with SimSwarm(2, base_port=free_base_port(2, seed=seed), seed=seed, start_positions=starts) as sims:
+        session, links = _session(sims, fence, actors=ACTORS[:2], separation=separation)
+        truth, measured = [], []
+        try:
+            with session:
+                session.preflight()
+                session.assign_roles()
+                assert sorted(session.takeoff()) == ["cf0", "cf1"]
+                session.start_mission()
+                end = time.monotonic() + 3.0
+                while time.monotonic() < end and session.flying():
+                    session.set_command("cf0", (1.0, 0.0))
+                    session.set_command("cf1", (-1.0, 0.0))
+                    a, b = sims.truth(0), sims.truth(1)
+                    if a.motors_on and b.motors_on:
+                        truth.append(np.hypot(a.position[0] - b.position[0], a.position[1] - b.position[1]))
+                    pa, pb = session.tracker.position("cf0"), session.tracker.position("cf1")
+                    if pa is not None and pb is not None:
+                        measured.append(float(np.hypot(*(pa[:2] - pb[:2]))))
+                    time.sleep(0.01)
+            contacts = sims.drone_contacts
+        finally:
+            _close(links)
+    return min(truth), min(measured), contacts, session
+
+
+def test_separation_keeps_two_drones_commanded_at_each_other_apart():
+    from groundstation.separation import POSITION_ERROR, SeparationConfig
+    cfg = SeparationConfig()
+    closest, closest_measured, contacts, session = _head_on(cfg, seed=25)
+    assert contacts == 0
+    # the filter works on the position estimates: the true centres stay min_distance apart up to both
+    # drones' estimate errors, which min_distance holds in reserve
+    assert closest >= cfg.min_distance - 2 * POSITION_ERROR, closest
+    assert closest_measured >= cfg.min_distance - POSITION_ERROR, closest_measured
+    assert closest < 0.7  # they did close in as far as the filter let them
+    stats = session.separation_stats()
+    assert stats["enabled"] and stats["solves"] > 20 and stats["methods"].get("qp", 0) > 0
+    # the comparison: the same flight without the filter ends in a crash
+    closest, _, contacts, session = _head_on(SeparationConfig(enabled=False), seed=26)
+    assert contacts >= 1 and session.separation_stats() == {"enabled": False}
