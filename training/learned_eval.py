@@ -12,6 +12,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from training.baselines import ClassicalPursuers, Policy, TeamPolicy
 from training.checkpoint import load_actors
 from training.config import ExperimentConfig
