@@ -277,8 +277,8 @@ def plot_training_curves(run: str | Path, out_dir: str | Path) -> list[Path]:
                 ax.plot(x, m[f"reward_{role}"], color=color, label=role)
 
     def distances(ax) -> None:
-        for key, label, style in (("max_dist", "max", ":"), ("avg_dist", "mean", "-"), ("min_dist", "min", "--")):
-            ax.plot(x, m[key], "k" + style, label=label)
+        for key, name, style in (("max_dist", "max", ":"), ("avg_dist", "mean", "-"), ("min_dist", "min", "--")):
+            ax.plot(x, m[key], "k" + style, label=name)
 
     return [figure("rewards.png", "mean reward per agent and step", "rewards per role", rewards),
             figure("distances.png", "pursuer-target distance [m]",
