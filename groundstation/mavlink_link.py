@@ -13,11 +13,15 @@ URI: ``mavlink:<pymavlink connection string>``. Everything after ``mavlink:`` go
 Not ``udp://``: that is cflib's (``CflibLink``), so a Crazyflie simulator and a MAVLink vehicle can never be
 mistaken for each other. The serial baud rate follows a comma, because pymavlink reads ``HOST:PORT`` as UDP.
 
-Protocol: MAVLink 2, common dialect. The link sends a GCS ``HEARTBEAT`` every ``heartbeat_period`` (0.25 s)
-from its own thread; vehicles land by themselves when these stop (``close()`` therefore ends in a failsafe
-landing after the vehicle's timeout, 1 s for the simulated vehicle). On opening it waits for the vehicle's
-heartbeat, asks for ``LOCAL_POSITION_NED``, ``SYS_STATUS`` and ``EXTENDED_SYS_STATE`` streams with
-``MAV_CMD_SET_MESSAGE_INTERVAL`` and waits for the first full telemetry sample.
+Protocol: MAVLink 2, common dialect; the vehicle must be ArduPilot (ArduCopter) or PX4 (``MAV_AUTOPILOT`` in its
+heartbeat), whose differences live in ``groundstation.mavlink_autopilot``. The link sends a GCS ``HEARTBEAT``
+every ``heartbeat_period`` (0.25 s) from its own thread. On opening it waits for the vehicle's heartbeat, asks
+for ``HEARTBEAT`` (5 Hz), ``LOCAL_POSITION_NED``, ``SYS_STATUS`` and ``EXTENDED_SYS_STATE`` streams with
+``MAV_CMD_SET_MESSAGE_INTERVAL``, waits for the first full telemetry sample, asks for ``GPS_GLOBAL_ORIGIN``
+(``MAV_CMD_REQUEST_MESSAGE``) and turns on the firmware's own GCS-loss failsafe with ``PARAM_SET`` (ArduCopter
+``FS_GCS_ENABLE`` = land, ``FS_GCS_TIMEOUT``; PX4 ``NAV_DLL_ACT`` = land, ``COM_DL_LOSS_T``, ``COM_OBL_RC_ACT`` =
+land), each confirmed by its ``PARAM_VALUE``: both ship with it off. So a vehicle that stops hearing this
+ground station (``close()``, a dead radio, a killed process) lands by itself after ``gcs_failsafe_timeout``.
 
 Frames. The ground station's world frame is ENU-like: x east, y north, z up, yaw counter-clockwise from x.
 MAVLink's local frame is NED: x north, y east, z down, yaw clockwise from north. The link converts every
@@ -25,22 +29,28 @@ position, velocity and yaw in both directions (``enu_to_ned`` / ``ned_to_enu``, 
 ``yaw_ned = pi/2 - yaw_enu``; ``yaw_rate_ned = -yaw_rate_enu``), so callers never see NED.
 
 Commands. ``send_velocity`` / ``send_position`` stream ``SET_POSITION_TARGET_LOCAL_NED`` (type masks
-``VELOCITY_MASK`` / ``POSITION_MASK``, frame ``MAV_FRAME_LOCAL_NED``). ``takeoff`` arms
-(``MAV_CMD_COMPONENT_ARM_DISARM``) when needed, sets the climb speed to ``height / duration``
-(``MAV_CMD_DO_CHANGE_SPEED`` speed type 2) and sends ``MAV_CMD_NAV_TAKEOFF`` with param7 = height [m above
-the local origin]. ``land`` sets the descent speed (speed type 3) and sends ``MAV_CMD_NAV_LAND`` with
-param7 = landing height; the vehicle disarms on touchdown. ``emergency_stop`` sends
-``MAV_CMD_DO_FLIGHTTERMINATION``. Every command waits for its ``COMMAND_ACK`` and raises ``LinkError``
-when it is refused or unanswered.
+``VELOCITY_MASK`` / ``POSITION_MASK``, frame ``MAV_FRAME_LOCAL_NED``); ArduCopter flies them only in GUIDED,
+PX4 only in OFFBOARD. ``takeoff`` on ArduCopter sets GUIDED, arms, sets the climb speed
+(``MAV_CMD_DO_CHANGE_SPEED`` type 2) and sends ``MAV_CMD_NAV_TAKEOFF`` (param7: height above home); on PX4 it
+arms and sends ``MAV_CMD_NAV_TAKEOFF`` (param7: AMSL, from the EKF origin), and once setpoints have streamed
+for ``offboard_prestream`` the link asks for OFFBOARD, which PX4 refuses without a stream. ``land`` sends
+``MAV_CMD_NAV_LAND``: both switch to their LAND mode and disarm on the ground. The link never switches a vehicle
+out of LAND or RTL, nor out of a mode its caller chose. ``emergency_stop`` sends ``MAV_CMD_DO_FLIGHTTERMINATION``
+(PX4 locks; ArduCopter disarms, and the link refuses to fly it again until a reboot).
 
-Fence upload (``upload_fence``): the MAVLink mission protocol with ``mission_type = MAV_MISSION_TYPE_FENCE``
-(``MISSION_COUNT`` -> ``MISSION_REQUEST_INT`` / ``MISSION_ITEM_INT`` per item -> ``MISSION_ACK``), items in
-``MAV_FRAME_LOCAL_NED`` with x, y = north, east [m] x 1e4: one ``MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION``
-per polygon corner (param1 = corner count) and one ``MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION`` per keep-out
-circle (param1 = radius [m]). The fence's ceiling travels as z = -z_max [m, NED] of the inclusion corners, a
-local convention that our simulated vehicle reads and that PX4 and ArduPilot ignore (set their altitude
-limits by parameter). The vehicle gets the fence itself, without the margin: it is the backstop behind the
-ground station's geofence, which keeps setpoints a margin inside.
+Nothing the flight supervisor calls waits for the vehicle: ``takeoff``, ``land`` and the OFFBOARD switch run
+on the link's worker thread (``groundstation.mavlink_worker``) and return a ``concurrent.futures.Future``; each
+step waits for its ``COMMAND_ACK`` (``ack_timeout``, ``retries``) and a refused or unanswered one fails the
+future with a ``LinkError`` naming the command and the result, logged and kept in ``command_errors``. A land
+overtakes a takeoff that hangs. ``command``, ``set_mode``, ``set_param``, ``arm``, ``disarm`` and
+``upload_fence`` block: call them before the flight or from your own thread.
+
+Fence upload (``upload_fence``): the way each firmware takes it (``groundstation.mavlink_autopilot.fence_items``
+and ``fence_params``): the polygon and keep-out circles as mission items (``mission_type =
+MAV_MISSION_TYPE_FENCE``: ``MISSION_COUNT`` -> ``MISSION_REQUEST_INT`` / ``MISSION_ITEM_INT`` per item ->
+``MISSION_ACK``) in ``MAV_FRAME_GLOBAL_INT`` around the vehicle's EKF origin, then the ceiling and the breach
+action as parameters (ArduCopter ``FENCE_*``, PX4 ``GF_*``). The vehicle gets the fence itself, without the
+margin: it is the backstop behind the ground station's geofence, which keeps setpoints a margin inside.
 """
 from __future__ import annotations
 

@@ -106,6 +106,18 @@ def stream(send, seconds: float, rate_hz: float = 50.0) -> None:
         time.sleep(1.0 / rate_hz)
 
 
+def stream_until(send, predicate, timeout: float, rate_hz: float = 50.0) -> bool:
+    """Call ``send()`` at ``rate_hz`` until ``predicate()`` holds (True) or ``timeout`` [s] passes (False)."""
+    import time
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        send()
+        if predicate():
+            return True
+        time.sleep(1.0 / rate_hz)
+    return bool(predicate())
+
+
 def on_ground(truth, z: float = 0.05) -> bool:
     """A simulated drone's ground truth says it is down with its motors off."""
     return truth.position[2] <= z and not truth.motors_on

@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
-from flight_fixtures import stream as _stream, wait_until  # noqa: E402
+from flight_fixtures import stream as _stream, stream_until, wait_until  # noqa: E402
 from groundstation.link import FlightState, LinkError, open_link, scheme_of  # noqa: E402
 from groundstation.mavlink_autopilot import Autopilot, fence_items  # noqa: E402
 from groundstation.mavlink_link import (MavlinkLink, enu_to_ned, ned_to_enu, parse_uri, split_baud,  # noqa: E402
@@ -114,8 +114,8 @@ def test_setpoints_outside_guided_are_ignored_and_takeoff_sets_guided(pair):
     assert link.wait_telemetry(1.0, lambda s: s.flight_state is FlightState.FLYING)
     assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 3.0)
     assert vehicle.position[2] == pytest.approx(0.4, abs=0.06)
-    _stream(lambda: link.send_velocity(0.0, 0.5, 0.0), 0.4)
-    assert vehicle.mode is VehicleMode.VELOCITY and vehicle.velocity[1] > 0.3  # north is +y
+    assert stream_until(lambda: link.send_velocity(0.0, 0.5, 0.0), lambda: vehicle.velocity[1] > 0.3, 3.0)
+    assert vehicle.mode is VehicleMode.VELOCITY  # north is +y
     t_last = time.monotonic()
     # GUID_TIMEOUT (0.5 s in this fixture, 3 s by default): the stale velocity target becomes a stop
     assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 2.0)

@@ -18,7 +18,7 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
-from flight_fixtures import stream as _stream, wait_until  # noqa: E402
+from flight_fixtures import stream as _stream, stream_until, wait_until  # noqa: E402
 from groundstation.link import FlightState, LinkError, open_link  # noqa: E402
 from groundstation.mavlink_autopilot import (PX4_MAIN_AUTO, PX4_SUB_LOITER, Autopilot, mode_name,  # noqa: E402
                                              px4_custom_mode, px4_split)
@@ -233,8 +233,9 @@ def test_setpoints_move_it_only_in_guided_or_offboard(pair):
     else:
         _stream(lambda: link.send_velocity(0.0, 0.0, 0.0), 0.3)  # PX4 takes OFFBOARD only with a stream
         link.set_mode("OFFBOARD")
-    _stream(lambda: link.send_velocity(0.5, 0.0, 0.0), 1.0)
-    assert link.mode in ("GUIDED", "OFFBOARD") and vehicle.position[0] - before[0] > 0.15
+    assert stream_until(lambda: link.send_velocity(0.5, 0.0, 0.0), lambda: vehicle.position[0] - before[0] > 0.15,
+                        5.0)
+    assert link.mode in ("GUIDED", "OFFBOARD")
     link.land(1.0).result(timeout=5.0)
     assert _wait(lambda: not vehicle.armed, 8.0)
 
@@ -249,8 +250,8 @@ def test_rtl_climbs_no_higher_than_the_fence_allows_returns_home_and_lands(pair)
         link.set_param("RTL_RETURN_ALT", 1.0)
     link.takeoff(0.5, 1.0).result(timeout=5.0)
     assert _wait(lambda: vehicle.mode is VehicleMode.HOLD, 4.0)
-    _stream(lambda: link.send_position(1.0, 0.8, 0.5), 3.0)
-    assert np.allclose(vehicle.position[:2], (1.0, 0.8), atol=0.1)
+    assert stream_until(lambda: link.send_position(1.0, 0.8, 0.5),
+                        lambda: np.allclose(vehicle.position[:2], (1.0, 0.8), atol=0.1), 8.0)
     link.command(link._mav.MAV_CMD_NAV_RETURN_TO_LAUNCH)
     assert _wait(lambda: vehicle.position[2] > 0.95, 4.0)
     peak = [0.0]
