@@ -48,8 +48,7 @@ import numpy as np
 
 from groundstation.mavlink_autopilot import (COPTER_MODES, PX4_MODES, Autopilot, GlobalOrigin, mode_from_set_mode,
                                              px4_custom_mode)
-from groundstation.mavlink_link import (FORCE_DISARM_MAGIC, TYPE_MASK_IGNORE_POSITION, TYPE_MASK_IGNORE_VELOCITY,
-                                        enu_to_ned, mavlink_module, ned_to_enu, open_mavlink)
+from groundstation.mavlink_link import enu_to_ned, mavlink_module, open_mavlink
 from groundstation.sim.flight_model import QuadBatch, QuadParams
 from groundstation.sim.mavlink_commands import AIRBORNE, AutopilotCommands, VehicleMode
 from groundstation.sim.mavlink_fence import FenceReceiver, VehicleFence
