@@ -253,6 +253,11 @@ class Firmware:
         self._planner_stop()
 
     @property
+    def watchdog_armed(self) -> bool:
+        """A first emergency-stop-watchdog packet has arrived (it stays armed until reboot)."""
+        return self._estop_notified is not None
+
+    @property
     def armed(self) -> bool:
         return self.state in _CAN_FLY
 

@@ -214,32 +214,49 @@ class PositionEstimator:
     def step(self, dt: float, extpos_fresh: np.ndarray) -> None:
         p, rng, n = self.params, self._rng, len(self.p_pos)
         was = self.measuring()
-        starts = rng.random(n) < p.lps_dropout_rate * dt
-        self._outage_left = np.where(starts & was, rng.exponential(p.lps_dropout_mean_s, n), self._outage_left)
-        self._outage_left = np.maximum(self._outage_left - dt, 0.0)
+        u = rng.random(2 * n)  # one draw per step for the dropout and outlier onsets (the sim runs at 200 Hz)
+        starts = was & (u[:n] < p.lps_dropout_rate * dt)
+        if starts.any():
+            self._outage_left[starts] = rng.exponential(p.lps_dropout_mean_s, int(starts.sum()))
+        if (self._outage_left > 0).any():
+            self._outage_left = np.maximum(self._outage_left - dt, 0.0)
         meas = self.measuring() | extpos_fresh
-        # prediction (a constant-velocity model per axis)
+        # prediction (a constant-velocity model per axis), then the update where positions arrive
         self.p_pos += 2.0 * dt * self.p_pv + dt * dt * self.p_vel
         self.p_pv += dt * self.p_vel
         self.p_vel += self._q * dt
-        # measurement update where positions arrive
-        r = np.where(extpos_fresh[:, None], 1e-4, self._r_density / dt)  # extpos: locSrv.extPosStdDev 0.01 m
+        r = self._r_density / dt
+        if extpos_fresh.any():
+            r = np.where(extpos_fresh[:, None], 1e-4, r)  # extpos: locSrv.extPosStdDev 0.01 m
         k = self.p_pos / (self.p_pos + r)
-        upd = meas[:, None]
-        self.p_vel = np.where(upd, self.p_vel - k * self.p_pv, self.p_vel)
-        self.p_pv = np.where(upd, (1.0 - k) * self.p_pv, self.p_pv)
-        self.p_pos = np.where(upd, (1.0 - k) * self.p_pos, self.p_pos)
-        for a in (self.p_pos, self.p_pv, self.p_vel):
-            np.clip(a, -MAX_COVARIANCE, MAX_COVARIANCE, out=a)
-        # the estimate's departures: drift while dead-reckoning, outliers while measuring, both fade after
+        if meas.all():
+            self.p_vel -= k * self.p_pv
+            self.p_pv *= 1.0 - k
+            self.p_pos *= 1.0 - k
+        else:
+            upd = meas[:, None]
+            self.p_vel = np.where(upd, self.p_vel - k * self.p_pv, self.p_vel)
+            self.p_pv = np.where(upd, (1.0 - k) * self.p_pv, self.p_pv)
+            self.p_pos = np.where(upd, (1.0 - k) * self.p_pos, self.p_pos)
+            for a in (self.p_pos, self.p_pv, self.p_vel):
+                np.clip(a, -MAX_COVARIANCE, MAX_COVARIANCE, out=a)
+        self._step_offset(dt, meas, was, u[n:])
+
+    def _step_offset(self, dt: float, meas: np.ndarray, was: np.ndarray, u: np.ndarray) -> None:
+        """The estimate's departures: drift while dead-reckoning, outliers while measuring; both fade once
+        measurements are back."""
+        p, rng, n = self.params, self._rng, len(self.p_pos)
+        self.offset *= math.exp(-dt / p.lps_corr_time)
         lost = ~meas
-        onset = lost & was
-        self._drift_vel[onset] = np.sqrt(self.p_vel[onset]) * rng.standard_normal((int(onset.sum()), 3))
-        self._drift_vel = np.where(lost[:, None], self._drift_vel + np.sqrt(self._q * dt) * rng.standard_normal((n, 3)),
-                                   0.0)
-        fade = math.exp(-dt / p.lps_corr_time)
-        self.offset = np.where(lost[:, None], self.offset + self._drift_vel * dt, self.offset * fade)
-        hit = meas & (rng.random(n) < p.lps_outlier_rate * dt)
+        if lost.any():
+            onset = lost & was
+            if onset.any():
+                self._drift_vel[onset] = np.sqrt(self.p_vel[onset]) * rng.standard_normal((int(onset.sum()), 3))
+            walk = self._drift_vel[lost] + np.sqrt(self._q * dt) * rng.standard_normal((int(lost.sum()), 3))
+            self._drift_vel[lost] = walk
+            self.offset[lost] = self.offset[lost] / math.exp(-dt / p.lps_corr_time) + walk * dt
+        self._drift_vel[meas] = 0.0
+        hit = meas & (u < p.lps_outlier_rate * dt)
         if hit.any():
             direction = rng.standard_normal((int(hit.sum()), 3))
             direction /= np.linalg.norm(direction, axis=1, keepdims=True)

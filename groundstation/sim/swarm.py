@@ -78,6 +78,8 @@ class DroneTruth:
     battery_v: float
     """[V]"""
     link_alive: bool
+    watchdog_armed: bool = False
+    """An emergency-stop-watchdog packet has arrived since boot: the drone now locks when they stop."""
 
 
 class SimSwarm:
@@ -95,6 +97,7 @@ class SimSwarm:
             raise SimError(f"radii: expected one radius > 0 [m] or one per drone ({n}), got {radii!r}")
         self.radii = r.copy()
         """Body radius of each drone [m]: closer than the sum of two, they touch and both crash."""
+        self._contact_d2 = (self.radii[:, None] + self.radii[None, :]) ** 2
         self._in_contact: set[tuple[int, int]] = set()
         self._contact_events: list[tuple[float, int, int]] = []
         self.host, self.base_port, self.physics_dt = host, base_port, physics_dt
@@ -186,7 +189,8 @@ class SimSwarm:
             d, m = self.drones[i], self.model
             return DroneTruth(tuple(float(v) for v in m.pos[i]), tuple(float(v) for v in m.vel[i]),
                               d.firmware.state.value, d.firmware.motors_on,
-                              float(m.battery_voltage(i, d.firmware.motors_on)), self._alive[i])
+                              float(m.battery_voltage(i, d.firmware.motors_on)), self._alive[i],
+                              d.firmware.watchdog_armed)
 
     def param(self, i: int, name: str) -> float:
         with self._lock:
@@ -307,8 +311,14 @@ class SimSwarm:
         """Pairs closer than the sum of their radii crash, both: motors off and locked, as on hardware
         where touching propellers end the flight. Two drones resting on the floor side by side do not."""
         pos = self.model.pos
-        d = np.linalg.norm(pos[:, None, :] - pos[None, :, :], axis=2)
-        touching = d < self.radii[:, None] + self.radii[None, :]
+        diff = pos[:, None, :] - pos[None, :, :]
+        d2 = np.einsum("ijk,ijk->ij", diff, diff)
+        touching = d2 < self._contact_d2
+        np.fill_diagonal(touching, False)
+        if not touching.any():
+            self._in_contact.clear()
+            return
+        d = np.sqrt(d2)
         resting = ~motors & (pos[:, 2] <= self.model.params.ground_z + 1e-6)
         now_in: set[tuple[int, int]] = set()
         for i, j in zip(*np.nonzero(np.triu(touching, 1))):
