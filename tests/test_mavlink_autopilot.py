@@ -218,6 +218,18 @@ def test_takeoff_only_where_the_firmware_allows_it(pair):
     assert not vehicle.armed
 
 
+def test_arming_is_refused_outside_the_vehicles_fence(pair):
+    vehicle, link = pair
+    from groundstation.safety import FenceConfig
+    link.upload_fence(FenceConfig(box=(1.0, 3.0, 1.0, 3.0), z_min=0.2, z_max=1.5, margin=0.2))  # (0, 0) is out
+    with pytest.raises(LinkError, match="arming refused"):  # ArduCopter "vehicle outside fence"; PX4 geofence
+        link.arm()
+    link.clear_fence()
+    link.arm()
+    assert _wait(lambda: link.armed, 2.0)
+    link.disarm()
+
+
 def test_setpoints_move_it_only_in_guided_or_offboard(pair):
     vehicle, link = pair
     link.takeoff(0.5, 1.0).result(timeout=5.0)
