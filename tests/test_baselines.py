@@ -113,3 +113,20 @@ def test_evaluate_runs_exactly_the_episodes_asked_and_is_reproducible(role_based
     assert a["episodes"] == 7
     a.pop("wall_s"), b.pop("wall_s")
     assert a == b
+
+
+@pytest.mark.slow  # 200 episodes: about a minute on a busy core
+def test_the_classical_team_is_at_least_as_strong_as_its_recorded_baseline(role_based):
+    """The bar learned teams are measured against must not drop: the classical team, re-run with the settings
+    of ``results/baseline_classical_role_based.json``, is as close, tracks and covers as much as recorded
+    (deterministic seeds: equal unless the team, the world or the metrics changed; then re-measure the file)."""
+    import json
+    from pathlib import Path
+    doc = json.loads((Path(__file__).resolve().parent.parent / "results" / "baseline_classical_role_based.json")
+                     .read_text())
+    assert doc["spec_hash"] == role_based.spec.hash, "the spec changed: re-measure the recorded baseline"
+    now = evaluate(role_based, make_policy("classical", seed=doc["seed"], evaders=doc["evaders"]), doc["episodes"],
+                   seed=doc["seed"], n_envs=doc["n_envs"], progress=False)
+    assert now["mean_min_dist"] <= doc["mean_min_dist"] + 1e-9
+    assert now["tracking_rate"] >= doc["tracking_rate"] - 1e-9
+    assert now["coverage"] >= doc["coverage"] - 1e-9
