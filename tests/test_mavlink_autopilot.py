@@ -218,6 +218,14 @@ def test_takeoff_only_where_the_firmware_allows_it(pair):
     assert not vehicle.armed
 
 
+def test_the_set_mode_message_changes_the_mode_too(pair):
+    vehicle, link = pair
+    mav = link._mav
+    custom = 5 if link.autopilot is Autopilot.ARDUPILOT else px4_custom_mode(3)  # LOITER / POSCTL
+    link._send("set_mode_send", link.target_system, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom)
+    assert _wait(lambda: link.mode == ("LOITER" if link.autopilot is Autopilot.ARDUPILOT else "POSCTL"), 2.0)
+
+
 def test_arming_is_refused_outside_the_vehicles_fence(pair):
     vehicle, link = pair
     from groundstation.safety import FenceConfig
