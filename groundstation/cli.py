@@ -218,7 +218,10 @@ def _run_fly(args: argparse.Namespace) -> int:
         return 2
     for t, drone, kind, detail in res["events"]:
         print(f"  t={t:8.2f} s {drone or '':>6} {kind}: {detail}")
-    print(f"final: {res['final_status']}; geofence violations {res['geofence_violations']}")
+    sep = res["separation"]
+    sep_line = (f"separation: {sep['solves']} solves, {sep['braked_setpoints']} braked setpoints" if sep["enabled"]
+                else "separation OFF (--no-separation)")
+    print(f"final: {res['final_status']}; geofence violations {res['geofence_violations']}; {sep_line}")
     return 0
 
 

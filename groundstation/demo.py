@@ -420,12 +420,10 @@ class PairMonitor:
 
 
 def _separation_results(session: FlightSession, sims: SimSwarm, pairs: PairMonitor) -> dict:
-    contacts = getattr(sims, "drone_contacts", None)  # the simulator's crash on contact (issue 16, sim part)
-    events = getattr(sims, "contact_events", None) or []
     return {
         "separation": session.separation_stats(),
-        "drone_contacts": contacts,
-        "drone_contact_events": [[round(float(t), 3), a, b] for t, a, b in events],
+        "drone_contacts": sims.drone_contacts,  # two drones that touched: both crashed (motors off, locked)
+        "drone_contact_events": [[round(float(t), 3), a, b] for t, a, b in sims.contact_events],
         "min_pair_distance": round(pairs.closest, 4) if math.isfinite(pairs.closest) else None,
         "pairs_below_min_distance": pairs.below,
         "pairs_touching": pairs.touching,
@@ -558,6 +556,7 @@ def format_summary(res: dict[str, Any]) -> str:
     f = lambda v, d=3: "-" if v is None else (f"{v:.{d}f}" if isinstance(v, float) else str(v))  # noqa: E731
     links = res["links"]
     ag = res["agents"]
+    sep = res["separation"]
     lines = [
         f"mission {res['mission_s']} s, {res['episodes']} episode(s), {res['control_periods']} control periods; "
         f"agents: {ag['actions']} actions, {ag['deadline_misses']} deadline misses, {ag['faults']} faults, tick to "
@@ -569,8 +568,9 @@ def format_summary(res: dict[str, Any]) -> str:
         f"{f(res['captures_per_episode'], 2)} (within {f(res['capture_distance'], 2)} m)",
         f"separation {'on' if res['separation']['enabled'] else 'OFF'} (min {f(res['min_distance'], 2)} m): drone "
         f"contacts {f(res['drone_contacts'])}, closest pair {f(res['min_pair_distance'])} m, "
-        f"{res['pairs_below_min_distance']} times closer than min, {res['pairs_touching']} touching (truth); "
-        f"{res['separation'].get('braked_setpoints', 0)} braked setpoints",
+        f"{res['pairs_below_min_distance']} times closer than min, {res['pairs_touching']} touching (truth)"
+        + (f"; changed {sep['changed_setpoints']} of {sep['setpoints']} setpoints, braked {sep['braked_setpoints']} "
+           f"({sep['unplaced_setpoints']} without a fresh position)" if sep["enabled"] else ""),
         f"landed {res['landed']}/{res['drones']} ({res['locked']} locked)   geofence violations "
         f"{res['geofence_violations']}   ground-station stalls {res['ground_station_stalls']}",
         f"measurement-to-setpoint at the drone (through cflib and UDP) p50 {f(res['setpoint_latency_p50_ms'], 2)} ms "

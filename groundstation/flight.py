@@ -599,7 +599,8 @@ class FlightSession:
     def _separation_snapshot(self) -> Snapshot:
         """Every drone the tracker can place, for the separation filter: those flying the mission with a fresh
         position obey it; the others (taking off, holding, landing, lost, on the ground) are obstacles at their
-        last known position and velocity."""
+        last known position and velocity. Positions are carried forward by velocity x age (up to
+        ``position_stale_after``): telemetry that queued behind a stalled ground station is that much old."""
         ids, pos, vel, want, ctrl, prev = [], [], [], [], [], []
         now = time.monotonic()
         for d in self.drones.values():
@@ -609,8 +610,9 @@ class FlightSession:
             controlled = d.status is DroneStatus.FLYING and self.tracker.position(d.id) is not None
             sp = d.setpoint
             in_flight = sp is not None and now - d.setpoint_t <= 2 * self._period
+            age = min(max(now - s.t, 0.0), self.config.position_stale_after)
             ids.append(d.id)
-            pos.append(s.position[:2])
+            pos.append(np.add(s.position[:2], np.multiply(s.velocity[:2], age)))
             vel.append(s.velocity[:2])
             want.append(self._desired(d) if controlled else np.zeros(2))
             ctrl.append(controlled)

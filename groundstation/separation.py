@@ -7,11 +7,13 @@ the bodies apart whatever their heights.
 Method: a braking-aware control barrier, solved jointly for every controlled drone as a QP with OSQP, with a
 closed-form pairwise fallback. Why this and not the alternatives the issue names:
 
-- reciprocal velocity obstacles (ORCA) assume that the velocity is reached at once and say nothing about
-  the acceleration limit or the watchdog; the buffered-Voronoi rule of the Crazyflie firmware
-  (``collision_avoidance.c``) is a per-drone position rule that halves every gap whether or not it is needed,
-  so it changes commands that were safe. A barrier that is a bound on the motion itself both leaves safe
-  commands alone (the solution is the command when no constraint is active) and gives a proof we can test.
+- reciprocal velocity obstacles (ORCA) assume that the new velocity is reached at once and say nothing about
+  the acceleration limit or the latency; the buffered-Voronoi rule of the Crazyflie firmware
+  (bitcraze/crazyflie-firmware ``src/modules/src/collision_avoidance.c``: in velocity mode the pseudo-goal
+  ``horizonSecs * v`` is projected into the drone's cell, every gap halved, 1 s horizon, 0.5 m/s default
+  speed) ignores the drone's momentum and holds half of every gap whether or not it is needed. A barrier
+  that bounds the motion itself leaves safe commands alone (the QP's solution is the command when no
+  constraint is active), shares a gap only where it must, and gives a bound that the tests can simulate.
 
 The motion model the barrier is proved for (and that ``tests/test_separation.py`` simulates): over the next
 ``latency + period`` seconds drone ``i`` flies some velocity inside the triangle of its measured velocity
@@ -49,8 +51,10 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import threading
+import time
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -381,13 +385,12 @@ class JointFilter:
     control period instead of one per setpoint keeps the per-setpoint cost to a lookup, and a joint solution
     gives each drone of a pair its share of the gap. The age of the cache is part of ``limits.latency``."""
 
-    def __init__(self, limits: Limits, gather, interval: float, clock=None) -> None:
-        import threading
-        import time
+    def __init__(self, limits: Limits, gather: Callable[[], "Snapshot"], interval: float,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.limits = limits
         self.interval = interval
         self._gather = gather
-        self._clock = clock or time.monotonic
+        self._clock = clock
         self._lock = threading.Lock()
         self._t = -math.inf
         self._cache: dict[str, tuple[np.ndarray, bool]] = {}
@@ -395,6 +398,11 @@ class JointFilter:
         self.methods: dict[str, int] = {}
         self.braked = 0
         """Setpoints handed out as a brake because nothing safer was possible."""
+        self.unplaced = 0
+        """Of those, setpoints of drones the filter could not place (no fresh position in ``gather()``)."""
+        self.changed = 0
+        """Setpoints the filter changed (braked included)."""
+        self.setpoints = 0
 
     def command(self, drone_id: str, now: float | None = None) -> np.ndarray:
         """Filtered horizontal command [m/s] of ``drone_id``; zero (a brake) when the drone is not in the
@@ -403,8 +411,12 @@ class JointFilter:
         with self._lock:
             if now - self._t >= self.interval or drone_id not in self._cache:
                 self._solve(now)
-            v, braked = self._cache.get(drone_id, (np.zeros(2), True))
+            entry = self._cache.get(drone_id)
+            v, braked, changed = entry if entry is not None else (np.zeros(2), True, True)
+            self.setpoints += 1
             self.braked += int(braked)
+            self.unplaced += int(entry is None)
+            self.changed += int(changed)
             return v.copy()
 
     def _solve(self, now: float) -> None:
@@ -417,9 +429,13 @@ class JointFilter:
         res = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled, self.limits,
                                 snap.previous)
         self.methods[res.method] = self.methods.get(res.method, 0) + 1
-        self._cache = {d: (res.velocity[k], bool(res.braked[k])) for k, d in enumerate(snap.ids)
+        want = _cap_speed(np.asarray(snap.desired, dtype=float).reshape(-1, 2), self.limits.max_speed)
+        changed = ~np.all(np.abs(res.velocity - want) <= 1e-9, axis=1)
+        self._cache = {d: (res.velocity[k], bool(res.braked[k]), bool(changed[k])) for k, d in enumerate(snap.ids)
                        if snap.controlled[k]}
 
     def stats(self) -> dict[str, Any]:
         with self._lock:
-            return {"solves": self.solves, "methods": dict(self.methods), "braked_setpoints": self.braked}
+            return {"solves": self.solves, "methods": dict(self.methods), "setpoints": self.setpoints,
+                    "changed_setpoints": self.changed, "braked_setpoints": self.braked,
+                    "unplaced_setpoints": self.unplaced}
