@@ -126,6 +126,14 @@ def test_classical_vs_the_suite_reports_each_kind_and_their_mean(tmp_path, capsy
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # written via a temporary file
 
 
+def test_evader_lists_combine_kinds_in_order():
+    from training.evader_spec import expand
+    from training.evader_suite import SUITE
+    assert expand("all") == ["learned", "scripted", *(f"suite:{k}" for k in SUITE)]
+    assert expand("scripted+suite:hider+both") == ["scripted", "suite:hider", "learned"]
+    assert expand("suite:juker,wanderer") == ["suite:juker", "suite:wanderer"]
+
+
 def test_one_suite_kind_gives_a_flat_document(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(ROOT)
     out = tmp_path / "w.json"
@@ -191,6 +199,7 @@ def test_a_users_evader_class_from_a_file_or_a_module(tmp_path, capsys, monkeypa
     ("fleeing", "is not an evader"),
     ("suite:nope", "unknown suite kind nope"),
     ("learned", "needs the co-trained evaders"),
+    ("scripted+nope", "in it, 'nope' is not an evader"),
 ])
 def test_bad_evader_specs_exit_2_with_one_line_naming_the_option(tmp_path, capsys, monkeypatch, spec, needle):
     monkeypatch.chdir(ROOT)

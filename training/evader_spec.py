@@ -4,6 +4,8 @@
 ``learned``            the co-trained evader actors of the run or models folder (needs ``--run``/``--models``)
 ``scripted``           ``training.baselines.FleeingEvaders`` (flee the team, avoid walls and obstacles)
 ``both``               ``learned`` and ``scripted``
+``all``                ``learned``, ``scripted`` and every kind of the suite (the headline table)
+``A+B``                the kinds of A, then those of B (e.g. ``scripted+suite:hider``)
 ``suite``              every kind of the held-out suite (``training.evader_suite.SUITE``), each reported
                        alone, and the suite's mean
 ``suite:KIND[,KIND]``  those kinds of the suite
@@ -26,7 +28,7 @@ import numpy as np
 from training.baselines import FleeingEvaders, Policy
 from training.evader_suite import SUITE, make_suite_evader, parse_suite
 
-BUILTIN = ("learned", "scripted", "both", "suite")
+BUILTIN = ("learned", "scripted", "both", "all", "suite")
 SUITE_MEAN = "suite_mean"
 """The key (and column) of the suite's mean over its kinds."""
 
@@ -46,6 +48,16 @@ def is_custom(spec: str) -> bool:
 
 def expand(spec: str) -> list[str]:
     """The evader kinds one ``--evader`` value stands for, each evaluated on its own."""
+    if "+" in spec:
+        kinds: list[str] = []
+        for part in spec.split("+"):
+            try:
+                kinds += [k for k in expand(part.strip()) if k not in kinds]
+            except EvaderSpecError as exc:
+                raise EvaderSpecError(f"--evader {spec!r}: in it, {str(exc).removeprefix('--evader ')}") from None
+        return kinds
+    if spec == "all":
+        return ["learned", "scripted", *(f"suite:{k}" for k in SUITE)]
     if spec == "both":
         return ["learned", "scripted"]
     if spec in ("learned", "scripted"):

@@ -138,7 +138,8 @@ def evaluate_learned_kinds(run: str | Path | None, models: str | Path | None, ki
 EVADER_HELP = (
     "evaders to meet: 'learned' (the co-trained evader actors; needs --run/--models; default there), "
     "'scripted' (training.baselines.FleeingEvaders), 'both' (learned and scripted), 'suite' (every kind of the "
-    "held-out suite, each reported alone, and their mean), 'suite:KIND[,KIND]' (KIND: wanderer, perimeter, "
+    "held-out suite, each reported alone, and their mean), 'all' (learned, scripted and the suite), 'A+B' (both "
+    "lists), 'suite:KIND[,KIND]' (KIND: wanderer, perimeter, "
     "hider, juker, predictive), 'module:Class' or 'path/to/file.py:Class' (your own evaders: act(obs, env) "
     "-> [B, N, 2], built with Class(seed=S) or Class()). Without --run/--models it replaces --evaders.")
 
