@@ -37,14 +37,17 @@ outside the fence          ``safety.FenceGuard``: hold, then land after ``fence.
 =========================  ==================================================================  ================
 
 A drone whose link is lost cannot be commanded: its own firmware levels out after 0.5 s without a setpoint
-and cuts the motors after 2 s (a Crazyflie drops from its flight height). The ground station keeps sending
-land commands in case the link comes back.
+(horizontal control off: it coasts) and cuts the motors after 2 s (a Crazyflie drops from its flight height);
+a Crazyflie link also arms the firmware's emergency-stop watchdog, which cuts the motors 1 s after the ground
+station falls silent in any phase (``cflib_link``). The ground station keeps sending land commands in case
+the link comes back.
 
 Two things that would otherwise fake a failure: a ground station that itself did not run for a while (a
 late supervisor tick) makes every link look silent, so silence is judged again only after a short grace;
 and a takeoff or land command lost on the radio is repeated every 50 ms until the vehicle reports its
-planner active (``Telemetry.planner_active``), because a Crazyflie that got the setpoint-stop but not the
-land command cuts its motors 0.2 s later.
+planner active (``Telemetry.planner_active``), because a Crazyflie whose priority was handed over
+(notify-setpoint-stop) but whose planner got no command takes the idle planner's null setpoint: motors off.
+A landing seen active is not re-sent once it has ended (the drone reports "flying" 2 s past touchdown).
 """
 from __future__ import annotations
 
@@ -83,8 +86,8 @@ class FlightConfig:
     """How often failsafes are judged [Hz]."""
     fence_horizon: float = 0.6
     """Time [s] a velocity setpoint is assumed to be flown before the drone brakes, for the geofence's
-    stopping-distance rule. 0.6 s covers the firmware's 0.5 s setpoint watchdog, so that a drone whose link
-    dies mid-command still stops inside the fence."""
+    stopping-distance rule while the ground station keeps commanding. A drone whose link dies mid-command
+    coasts instead; the geofence keeps that path free too (``fence.coast_time``)."""
     altitude_gain: float = 1.5
     """Vertical speed per metre of altitude error [1/s]."""
     max_vertical_speed: float = 0.3
@@ -784,7 +787,7 @@ class FlightSession:
         """Follow every landing to the ground. A land command can be lost on the radio: until the vehicle
         reports its planner active (or, for links that do not report it, until the landing should have
         ended) the command is repeated, every ``LAND_CONFIRM_RETRY`` s at first; a Crazyflie that took the
-        setpoint stop but not the land would cut its motors 0.2 s later."""
+        hand-over but not the land cuts its motors at once."""
         for d in self.drones.values():
             if d.status is not DroneStatus.LANDING:
                 continue
