@@ -153,6 +153,7 @@ class Trainer:
         self.tc = tc = cfg.train
         self.out = Path(out)
         torch.set_num_threads(tc.threads)
+        _set_numba_threads(tc.threads)
         if tc.device.startswith("cuda") and not torch.cuda.is_available():
             raise RunError(f"train.device = {tc.device!r} but torch sees no CUDA device: use --device cpu")
         self.spec = cfg.spec
@@ -412,6 +413,13 @@ class Trainer:
             if k != "step" and v != "":
                 writer.add_scalar(k, float(v), self.env_step)
         return row
+
+
+def _set_numba_threads(n: int) -> None:
+    """Numba's parallel kernels (the Voronoi areas) use ``train.threads`` threads too: on a shared machine a
+    second, spinning worker per run costs as much CPU as the run itself and buys nothing."""
+    import numba
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
 
 
 def _fmt(v: Any) -> str:
