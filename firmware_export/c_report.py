@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware_export import m4_emu
+from firmware_export import fw_budget, m4_emu
 from firmware_export.c_export import CExport
 from firmware_export.observations import (parity_observations, random_observations,  # noqa: F401 (re-exported)
                                           recorded_observations)
@@ -80,11 +80,15 @@ def format_report(export: CExport, r: CostReport) -> str:
         "Cortex-M4 build (arm-none-eabi-gcc -O2 -ffast-math -mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard):",
         f"  flash: code {s.text} B + tables {s.rodata} B = {s.text + s.rodata} B; "
         f"RAM: static {s.data + s.bss} B, stack {s.stack} B; CCM: {s.ccm} B",
+        f"  in the stock Crazyflie firmware ({fw_budget.FIRMWARE_COMMIT[:8]}) with the app: "
+        + "; ".join(f"{k} {v:,} of {getattr(fw_budget.CAPACITY, k):,} B" for k, v in
+                    vars(fw_budget.predicted(export.sources.weight_bytes, export.weights_in, s.text)).items()),
         f"  executed instructions per inference: {run.instructions}",
         f"  cycles, zero wait states (TRM timing model): {run.cycles} = {r.us:.1f} us at 168 MHz",
         f"  flash wait states (ART model: 5 WS per miss, cold 64-line I-cache, 8-line D-cache): "
         f"{st.icache_misses} I-misses + {st.dcache_misses} D-misses = {st.cycles} cycles; "
-        f"{st.flash_data_reads} data reads from flash, {st.ccm_data_reads} from CCM",
+        f"{st.flash_data_reads} data reads from flash, {st.ram_table_reads} from static SRAM, {st.ccm_data_reads} "
+        "from CCM (SRAM and CCM: zero wait states)",
         f"  per inference with wait states: {run.total_cycles} cycles = {r.us_total:.1f} us at 168 MHz",
         f"  swarm_policy_init (once): {run.init_instructions} instructions, {run.init_cycles} cycles "
         f"= {m4_emu.micros(run.init_cycles):.1f} us",

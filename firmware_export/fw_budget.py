@@ -49,6 +49,16 @@ APP_SHELL = Usage(flash=3_676, ram=3_216, ccm=96)
 """The app without its policy: with-app build minus STOCK minus the policy object (measured, see the report)."""
 POLICY_CODE_MAX = 2048
 """Upper bound of the policy's code (measured 0.9-1.4 KB for the 64-64 actors in every placement)."""
+MEASURED_BUILDS = {
+    "app, float, ram (default)": ("float", "ram", 28_936, 884),
+    "app, float, flash": ("float", "flash", 28_936, 868),
+    "app, int8w, ram": ("int8w", "ram", 8_712, 1_328),
+    "app, int8w, flash": ("int8w", "flash", 8_712, 1_316),
+}
+"""The builds with the app recorded in the report (row label -> quant, placement, table bytes, policy code bytes:
+the 45-64-64-2 pursuer, ``policy.o``'s ``.text``); ``predicted`` reproduces their usage (tests/test_fw_budget.py)."""
+ALIGN_SLACK = 16
+"""Bytes the linker's section alignment may add to flash around the policy's tables."""
 
 
 def policy_usage(table_bytes: int, weights_in: str, code_bytes: int = POLICY_CODE_MAX) -> Usage:
