@@ -400,7 +400,7 @@ class SimCrazyflie:
             if cmd == 0x01:
                 success, armed = fw.arm(bool(data[1]) if len(data) > 1 else True)
                 return [crtp.packet(Port.SUPERVISOR, 1, bytes((0x81, success, armed)))]
-            if cmd == 0x02:  # crash recovery: the simulator never crashes
+            if cmd == 0x02:  # crash recovery: a simulated collision locks instead (reboot), nothing to recover
                 return [crtp.packet(Port.SUPERVISOR, 1, bytes((0x82, 1, 1)))]
             if cmd == 0x03:
                 fw.emergency_stop(now)

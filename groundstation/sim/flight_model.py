@@ -102,8 +102,8 @@ class QuadBatch:
         accel = (v_des - self.vel) / p.tau
         norm = np.linalg.norm(accel, axis=1, keepdims=True)
         accel *= np.minimum(1.0, p.max_accel / np.maximum(norm, 1e-9))
-        if coasting is not None:
-            accel[:, :2] = np.where(coasting[:, None], -p.drag_xy * self.vel[:, :2], accel[:, :2])
+        if coasting is not None and coasting.any():
+            accel[coasting, :2] = -p.drag_xy * self.vel[coasting, :2]
         accel = np.where(motors_on[:, None], accel, np.array([0.0, 0.0, -GRAVITY]))
         self.vel += accel * dt
         self._limit_speed(motors_on)
