@@ -424,3 +424,20 @@ def test_firmware_emergency_stop_watchdog_and_landed_timeline():
     assert fw.state is SupervisorState.LANDED  # the watchdog is not judged while landed ...
     fw.control(7.1, pos, vel, 0.0)
     assert fw.state is SupervisorState.LOCKED  # ... but the reset after the landing timeout locks
+
+
+def test_drones_that_touch_both_crash_and_are_counted_once():
+    starts = np.array([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [3.0, 0.0, 0.0], [3.1, 0.0, 0.0]])
+    sims = SimSwarm(4, base_port=free_base_port(4), start_positions=starts)  # not started: stepped by hand
+    t, dt = 0.0, sims.physics_dt
+    # drones 0 and 1 swap places at 0.5 m height; 2 and 3 rest side by side, 0.1 m apart (no contact)
+    for _ in range(int(3.0 / dt)):
+        for i, x in ((0, 0.6), (1, 0.0)):
+            sims.drones[i].firmware.stream(t, Mode.POSITION, (x, 0.0, 0.5, 0.0))
+        sims._physics_step(t, dt)
+        t += dt
+    assert sims.drone_contacts == 1 and [e[1:] for e in sims.contact_events] == [(0, 1)]
+    assert sims.is_locked(0) and sims.is_locked(1) and not sims.is_locked(2) and not sims.is_locked(3)
+    assert all(sims.truth(i).position[2] == 0.0 and not sims.truth(i).motors_on for i in range(4))
+    gap = abs(sims.truth(0).position[0] - sims.truth(1).position[0])
+    assert gap < 0.6  # they met on the way (and fell there), they did not pass through each other
