@@ -61,7 +61,7 @@ def test_replay_buffer_wraps_and_round_trips_newest_first_kept():
     assert sorted(small.obs[:, 0, 0].tolist()) == [6, 7, 8]  # a smaller buffer keeps the newest
     o, a, r, n, na = buf.sample(100, torch.Generator().manual_seed(0))
     assert o.shape == (100, 2, 3) and torch.equal(n, o + 0.5)
-    assert na.shape == (100, 2, 2) and not na.any()  # no next actions given: zeros
+    assert na.shape == (100, 2, 2) and torch.isnan(na).all()  # none given: NaN, the target actors decide
     with pytest.raises(ValueError, match="empty"):
         ReplayBuffer(4, 1, 1).sample(1, torch.Generator())
 
@@ -229,8 +229,8 @@ def test_replay_buffer_keeps_next_actions_and_loads_old_buffers_without_them(cap
     old = {k: v for k, v in sd.items() if k != "next_act"}  # a checkpoint from before next actions
     with caplog.at_level("WARNING", logger="training.maddpg"):
         again.load_state_dict(old)
-    assert len(again) == 4 and not again.next_act.any()
-    assert "zero next actions" in caplog.text
+    assert len(again) == 4 and torch.isnan(again.next_act[:4]).all()  # unknown: the target actors decide
+    assert "without next actions" in caplog.text
 
 
 def test_td_target_uses_the_stored_next_action_of_scripted_agents_and_the_target_actor_of_learners():
@@ -242,6 +242,7 @@ def test_td_target_uses_the_stored_next_action_of_scripted_agents_and_the_target
     obs, next_obs = (torch.randn(k, n, sp.max_obs_dim, generator=g) for _ in range(2))
     rew = torch.randn(k, n, generator=g)
     stored = torch.rand(k, n, 2, generator=g) * 2 - 1  # what every agent "did" at next_obs
+    stored[:, agent._learns] = float("nan")  # as the trainer stores it: the learners' target actors decide
     batch = (obs, torch.zeros(k, n, 2), rew, next_obs, stored)
     y = agent.td_target(batch)
     # by hand: the learners' next actions from their target actors, the scripted evader's as stored
@@ -257,6 +258,216 @@ def test_td_target_uses_the_stored_next_action_of_scripted_agents_and_the_target
     learner = stored.clone()
     learner[:, 0] = -stored[:, 0]
     assert torch.equal(agent.td_target((*batch[:4], learner)), y)
-    # a learned evader uses its target actor whatever was stored
+    # a learned evader uses its target actor where nothing is given (NaN), and a given action where it was
+    # frozen or scripted in that env (opponent mixing)
     co = MADDPG(sp, dataclasses.replace(cfg.train, evaders="learned"))
-    assert torch.equal(co.td_target(batch), co.td_target((*batch[:4], moved)))
+    unknown = torch.full_like(stored, float("nan"))
+    assert torch.equal(co.td_target((*batch[:4], unknown)), co.td_target(batch[:4]))
+    assert (co.td_target(batch) - co.td_target((*batch[:4], moved))).abs().amax(1).min() > 0
+
+
+# -- learner options (issue 13): each off by default -----------------------------------------------------
+
+OPTION_SETS = {
+    "default": {},
+    "share": {"share_params": True},
+    "global": {"critic": "global"},
+    "matd3": {"algorithm": "matd3"},
+    "scaling": {"obs_scaling": True},
+    "all": {"share_params": True, "critic": "global", "algorithm": "matd3", "obs_scaling": True,
+            "int8_robustness": 1.0},
+}
+
+
+def _batch(cfg: ExperimentConfig, k: int = 16, seed: int = 1) -> tuple[torch.Tensor, ...]:
+    sp = cfg.spec
+    n, d = sp.n_agents, sp.max_obs_dim
+    g = torch.Generator().manual_seed(seed)
+    obs, next_obs = (torch.randn(k, n, d, generator=g) for _ in range(2))
+    for i, dim in enumerate(sp.obs_dim(r) for r in sp.roles):  # zero padding, as the env gives
+        obs[:, i, dim:] = 0
+        next_obs[:, i, dim:] = 0
+    return (obs, torch.rand(k, n, 2, generator=g) * 2 - 1, torch.randn(k, n, generator=g), next_obs,
+            torch.rand(k, n, 2, generator=g) * 2 - 1)
+
+
+def test_options_are_off_by_default_and_in_the_shipped_configs():
+    from pathlib import Path
+    tc = TrainConfig()
+    assert (tc.algorithm, tc.critic, tc.share_params, tc.obs_scaling) == ("maddpg", "local", False, False)
+    root = Path(__file__).resolve().parent.parent
+    for name in ("role_based", "multi_target"):
+        shipped = ExperimentConfig.from_toml(root / "configs" / f"{name}.toml").train
+        assert (shipped.algorithm, shipped.critic, shipped.share_params, shipped.obs_scaling) == (
+            "maddpg", "local", False, False), name
+
+
+def test_option_errors_name_the_field():
+    from runtime.spec import SpecError
+    for bad, field in (({"algorithm": "td3"}, "train.algorithm"), ({"critic": "joint"}, "train.critic"),
+                       ({"policy_delay": 0}, "train.policy_delay"), ({"target_noise": -0.1}, "train.target_noise"),
+                       ({"target_noise_clip": -1.0}, "train.target_noise_clip"),
+                       ({"share_params": 1}, "train.share_params"), ({"obs_scaling": "yes"}, "train.obs_scaling")):
+        with pytest.raises(SpecError, match=field):
+            TrainConfig(**bad)
+    cfg = ExperimentConfig.from_dict({"spec": {"sensing": {"n_obstacles_observed": 1}}, "train": {"critic": "global"}})
+    with pytest.raises(SpecError, match="sensing.n_obstacles_observed"):
+        MADDPG(cfg.spec, cfg.train)
+
+
+@pytest.mark.parametrize("name", sorted(OPTION_SETS))
+def test_every_option_trains_round_trips_and_exports_one_actor_per_agent(name, tmp_path):
+    from training.checkpoint import load_actors, save_actors
+    cfg = _cfg(**OPTION_SETS[name])
+    a, b = MADDPG(cfg.spec, cfg.train), MADDPG(cfg.spec, dataclasses.replace(cfg.train, seed=99))
+    before = [p.detach().clone() for p in a.actors.parameters()]
+    for s in range(4):
+        losses = a.update(_batch(cfg, seed=s))
+    assert all(np.isfinite(v) for v in losses.values()) and "actor_loss" in losses
+    assert any(not torch.equal(p, q) for p, q in zip(a.actors.parameters(), before))
+    b.load_state_dict(a.state_dict())  # networks, optimizers, the random streams, matd3's delay phase
+    for s in (5, 6, 7):  # three updates cover matd3's delayed actor step and its smoothing noise
+        batch = _batch(cfg, seed=s)
+        assert a.update(batch) == b.update(batch)
+    for p, q in zip(list(a.actors.parameters()) + list(a.critics_tgt.parameters()),
+                    list(b.actors.parameters()) + list(b.critics_tgt.parameters())):
+        assert torch.equal(p, q)
+    # the export contract: one actor per agent taking the role's raw observation, acting as the learner does
+    obs = _batch(cfg, k=32, seed=9)[0]
+    path = save_actors(tmp_path / "actors.pt", cfg.spec, a.to_actors())
+    _, loaded, _ = load_actors(path)
+    assert [act.obs_dim for _, _, act in loaded] == [cfg.spec.obs_dim(r) for r in cfg.spec.roles]
+    want = a.act(obs)
+    with torch.no_grad():  # the opponent snapshots' form: one row per agent on raw observations
+        torch.testing.assert_close(a.frozen_actors()(obs.transpose(0, 1)).transpose(0, 1), want, rtol=1e-5, atol=2e-6)
+    for i, (_, _, actor) in enumerate(loaded):
+        with torch.no_grad():
+            torch.testing.assert_close(actor(obs[:, i, :actor.obs_dim]), want[:, i], rtol=1e-5, atol=2e-6)
+
+
+def test_a_learner_state_loads_only_into_the_same_options():
+    cfg = _cfg(critic="global")
+    sd = MADDPG(cfg.spec, cfg.train).state_dict()
+    with pytest.raises(ValueError, match="train.critic = 'global'"):
+        MADDPG(cfg.spec, dataclasses.replace(cfg.train, critic="local")).load_state_dict(sd)
+    old = MADDPG(cfg.spec, TrainConfig()).state_dict()  # a state written before the options existed
+    del old["options"], old["target_gen"], old["last_actor"]
+    MADDPG(cfg.spec, TrainConfig()).load_state_dict(old)
+    with pytest.raises(ValueError, match="train.share_params = False"):
+        MADDPG(cfg.spec, TrainConfig(share_params=True)).load_state_dict(old)
+
+
+def test_shared_parameters_one_actor_and_critic_per_role_that_tells_its_agents_apart():
+    cfg = _cfg(share_params=True)
+    sp = cfg.spec  # 2 pursuers, 1 scout, 1 evader: 3 roles
+    agent = MADDPG(sp, cfg.train)
+    assert agent.actors.weights[0].shape[0] == 3 and agent.critics.w_obs.shape[0] == 3
+    p0, p1 = sp.team.indices(Role.PURSUER)
+    obs = _batch(cfg)[0]
+    obs[:, p1] = obs[:, p0]
+    a = agent.act(obs)
+    assert torch.equal(a[:, p0], a[:, p1])  # one pursuer actor
+    actors = agent.to_actors()
+    assert len(actors) == sp.n_agents
+    assert all(torch.equal(x, y) for x, y in zip(actors[p0].state_dict().values(), actors[p1].state_dict().values()))
+    # the role's critic gets a one-hot of the agent it evaluates: same state and actions, different values
+    state, act = agent.critic_input(obs), _batch(cfg)[1]
+    q = agent.critics(state, act.reshape(act.shape[0], -1), index=agent._critic_ix, slot=agent._slot)
+    assert q.shape == (sp.n_agents, obs.shape[0]) and not torch.equal(q[p0], q[p1])
+    # one Adam step on the mean of the role's agents' losses: both pursuers' transitions move the model
+    before = agent.actors.weights[0][0].detach().clone()
+    agent.update(_batch(cfg))
+    assert not torch.equal(agent.actors.weights[0][0], before)
+
+
+def test_global_state_is_every_position_velocity_and_obstacle_of_the_world():
+    from training.env import PursuitEnv
+    from training.maddpg import global_state, global_state_dim
+    cfg = ExperimentConfig.from_dict({"spec": {"team": {"n_pursuers": 2, "n_scouts": 2, "n_evaders": 2}}})
+    sp = cfg.spec
+    env = PursuitEnv(sp, n_envs=3, seed=4)
+    obs = env.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        obs, _, _, _ = env.step(rng.uniform(-1, 1, (3, sp.n_agents, 2)))
+    s = env.state
+    order = np.argsort(s.obstacle_pos[..., 0], axis=1)
+    obst = np.concatenate([np.take_along_axis(s.obstacle_pos, order[..., None], 1),
+                           np.take_along_axis(s.obstacle_radius, order, 1)[..., None]], -1)
+    want = np.concatenate([s.pos.reshape(3, -1), s.vel.reshape(3, -1), obst.reshape(3, -1)], 1)
+    got = global_state(sp, torch.as_tensor(obs, dtype=torch.float32))
+    assert got.shape == (3, global_state_dim(sp)) == (3, 4 * sp.n_agents + 3 * sp.arena.n_obstacles)
+    np.testing.assert_allclose(got.numpy(), want, atol=1e-5)
+
+
+def test_matd3_takes_the_smaller_twin_with_clipped_smoothing_noise_and_delays_the_actor():
+    cfg = _cfg(algorithm="matd3", evaders="scripted", policy_delay=2, target_noise=0.0)
+    agent = MADDPG(cfg.spec, cfg.train)
+    n = cfg.spec.n_agents
+    assert agent.critics.w_obs.shape[0] == 2 * n  # twin critics
+    obs, act, rew, next_obs, stored = _batch(cfg)
+    ev = cfg.spec.team.indices(Role.EVADER)[0]
+    stored[:, :ev] = float("nan")  # known: the scripted evader's next action only
+    batch = (obs, act, rew, next_obs, stored)
+    k = obs.shape[0]
+    with torch.no_grad():
+        na = agent.target_next_actions(next_obs, stored)
+        q2 = agent.critics_tgt(next_obs.reshape(k, -1), na.reshape(k, -1)).view(2, n, k)
+    assert (q2[0] != q2[1]).any()
+    torch.testing.assert_close(agent.td_target(batch), rew.t() * 0.1 + 0.95 * torch.minimum(q2[0], q2[1]))
+    # smoothing noise: clipped to +-target_noise_clip around the target actors, none on the scripted evader
+    noisy = MADDPG(cfg.spec, dataclasses.replace(cfg.train, target_noise=10.0, target_noise_clip=0.1))
+    clean = noisy.actors_tgt(next_obs.transpose(0, 1)).transpose(0, 1).detach()
+    got = noisy.target_next_actions(next_obs, stored)
+    diff = (got - clean)[:, :ev]
+    assert diff.abs().max() <= 0.1 + 1e-6 and (diff.abs() > 0.09).float().mean() > 0.5
+    assert torch.equal(got[:, ev], stored[:, ev])
+    # delayed: the actors and every target move only on every 2nd update; the critics on every update
+    snap = lambda m: [p.detach().clone() for p in m.parameters()]  # noqa: E731
+    actors, targets, critics = snap(agent.actors), snap(agent.critics_tgt), snap(agent.critics)
+    agent.update(batch)
+    assert all(torch.equal(p, q) for p, q in zip(agent.actors.parameters(), actors))
+    assert all(torch.equal(p, q) for p, q in zip(agent.critics_tgt.parameters(), targets))
+    assert not torch.equal(agent.critics.w_obs, critics[0])
+    agent.update(batch)
+    assert not torch.equal(agent.actors.weights[0], actors[0])
+    assert not torch.equal(agent.critics_tgt.w_obs, targets[0])
+
+
+def test_obs_scaling_maps_the_spec_ranges_to_unit_and_folds_into_the_exported_first_layer():
+    cfg = _cfg(obs_scaling=True)
+    sp = cfg.spec
+    agent = MADDPG(sp, cfg.train)
+    n, d = sp.n_agents, sp.max_obs_dim
+    lo, hi = agent._obs_lo, agent._obs_lo + agent._obs_span
+    ends = agent.actor_input(torch.cat([lo, hi], dim=1))  # [N, 2, D]
+    for i, dim in enumerate(agent.obs_dims):
+        torch.testing.assert_close(ends[i, 0, :dim], -torch.ones(dim))
+        torch.testing.assert_close(ends[i, 1, :dim], torch.ones(dim))
+        assert not ends[i, :, dim:].any()  # padding stays zero
+    with torch.no_grad():  # weights like a trained actor's, so that the fold is checked on real magnitudes
+        for w in agent.actors.weights:
+            w.mul_(3.0)
+    g = torch.Generator().manual_seed(0)
+    obs = (lo + agent._obs_span * (torch.rand(n, 500, d, generator=g) * 1.4 - 0.2)).transpose(0, 1)  # in and out
+    want = agent.act(obs)
+    with torch.no_grad():
+        raw = agent.actors(obs.transpose(0, 1)).transpose(0, 1)
+    assert (raw - want).abs().max() > 0.05  # the scaling matters
+    for i, actor in enumerate(agent.to_actors()):
+        with torch.no_grad():
+            torch.testing.assert_close(actor(obs[:, i, :actor.obs_dim]), want[:, i], rtol=1e-5, atol=1e-5)
+
+
+def test_obs_scaled_actors_export_to_onnx_that_acts_as_the_learner(tmp_path):
+    from firmware_export.onnx_export import export_run
+    from training.checkpoint import save_actors
+    from training.maddpg import OnnxActorsPolicy
+    cfg = _cfg(obs_scaling=True, share_params=True)
+    agent = MADDPG(cfg.spec, cfg.train)
+    agent.update(_batch(cfg))
+    save_actors(tmp_path / "run" / "actors.pt", cfg.spec, agent.to_actors())
+    export_run(tmp_path / "run", tmp_path / "models", n_random=200, n_recorded=50)
+    obs = _batch(cfg, k=64, seed=3)[0]
+    np.testing.assert_allclose(OnnxActorsPolicy(str(tmp_path / "models")).act(obs.numpy()), agent.act(obs).numpy(),
+                               atol=1e-5)

@@ -20,134 +20,23 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 import torch
 from torch import nn
 
-from runtime.spec import INT8_QMAX, SwarmSpec
+from runtime.spec import INT8_QMAX, SpecError, SwarmSpec
 from training.config import TrainConfig
-from training.networks import Actor
+from training.networks import Actor, BatchedCritic, BatchedMLP
 
 log = logging.getLogger(__name__)
 
 
-class BatchedMLP(nn.Module):
-    """``n_models`` independent MLPs evaluated together: ``[N, B, in] -> [N, B, out]``.
-
-    Layer k has weight ``[N, in_k, out_k]`` and bias ``[N, 1, out_k]``; hidden layers use ReLU, the output
-    layer ``out_act`` ("tanh" or "none"). ``forward`` also accepts an input shared by all models ``[B, in]``.
-    """
-
-    def __init__(self, n_models: int, in_dim: int, hidden: Sequence[int], out_dim: int, out_act: str = "none",
-                 generator: torch.Generator | None = None) -> None:
-        super().__init__()
-        if out_act not in ("tanh", "none"):
-            raise ValueError(f"out_act must be 'tanh' or 'none', got {out_act!r}")
-        self.n_models = n_models
-        self.widths = [in_dim, *hidden, out_dim]
-        self.out_act = out_act
-        self.weights = nn.ParameterList()
-        self.biases = nn.ParameterList()
-        for fan_in, fan_out in zip(self.widths[:-1], self.widths[1:]):
-            # nn.Linear's default initialisation, drawn per model
-            bound = 1.0 / math.sqrt(fan_in)
-            w = (torch.rand(n_models, fan_in, fan_out, generator=generator) * 2 - 1) * bound
-            b = (torch.rand(n_models, 1, fan_out, generator=generator) * 2 - 1) * bound
-            self.weights.append(nn.Parameter(w))
-            self.biases.append(nn.Parameter(b))
-
-    def forward_pre(self, x: torch.Tensor) -> torch.Tensor:
-        """Output before the output activation."""
-        last = len(self.weights) - 1
-        for k, (w, b) in enumerate(zip(self.weights, self.biases)):
-            x = torch.matmul(x, w) + b  # [B, in] broadcasts over the N models
-            if k < last:
-                x = torch.relu(x)
-        return x
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.forward_pre(x)
-        return torch.tanh(y) if self.out_act == "tanh" else y
-
-    # -- the per-agent Actor contract -----------------------------------------------------------------
-    def to_actors(self, in_dims: Sequence[int]) -> list[Actor]:
-        """Per-model ``Actor(in_dims[i])`` with this model's weights; the first layer keeps only the first
-        ``in_dims[i]`` input columns (the rest only ever saw zero padding)."""
-        if self.out_act != "tanh":
-            raise ValueError("only a tanh-output BatchedMLP is an actor")
-        hidden = tuple(self.widths[1:-1])
-        out = []
-        for i, d in enumerate(in_dims):
-            actor = Actor(int(d), self.widths[-1], hidden)
-            sd = {}
-            for k, (w, b) in enumerate(zip(self.weights, self.biases)):
-                wi = w[i].detach().cpu()
-                if k == 0:
-                    wi = wi[:d]
-                sd[f"net.{2 * k}.weight"] = wi.t().contiguous().clone()
-                sd[f"net.{2 * k}.bias"] = b[i, 0].detach().cpu().clone()
-            actor.load_state_dict(sd)
-            out.append(actor)
-        return out
-
-    @classmethod
-    def from_actors(cls, actors: Sequence[Actor], in_dim: int) -> "BatchedMLP":
-        """Stack per-agent actors (equal hidden widths) into one module taking ``in_dim`` >= every obs_dim
-        inputs; padding columns get zero weights."""
-        hidden = actors[0].hidden
-        if any(a.hidden != hidden or a.act_dim != actors[0].act_dim for a in actors):
-            raise ValueError("actors must share hidden widths and act_dim to be batched")
-        if any(a.obs_dim > in_dim for a in actors):
-            raise ValueError(f"an actor takes more than in_dim={in_dim} inputs")
-        m = cls(len(actors), in_dim, hidden, actors[0].act_dim, "tanh")
-        with torch.no_grad():
-            for i, a in enumerate(actors):
-                linears = [mod for mod in a.net if isinstance(mod, nn.Linear)]
-                for k, lin in enumerate(linears):
-                    w = lin.weight.detach().t()
-                    if k == 0:
-                        m.weights[k][i].zero_()
-                        m.weights[k][i, :a.obs_dim] = w
-                    else:
-                        m.weights[k][i] = w
-                    m.biases[k][i, 0] = lin.bias.detach()
-        return m
-
-
-class BatchedCritic(nn.Module):
-    """N centralized critics ``Q_i(O, A)``: O all observations ``[B, N*D]``, A all actions ``[B, N*2]``
-    (or per-critic ``[N, B, ...]``); returns ``[N, B]``. The first layer is split into its observation and
-    action parts so that the (large, shared) observation part is multiplied once per critic, not per
-    action variant."""
-
-    def __init__(self, n_agents: int, obs_in: int, act_in: int, hidden: Sequence[int],
-                 generator: torch.Generator | None = None) -> None:
-        super().__init__()
-        h1 = hidden[0]
-        bound = 1.0 / math.sqrt(obs_in + act_in)
-        self.w_obs = nn.Parameter((torch.rand(n_agents, obs_in, h1, generator=generator) * 2 - 1) * bound)
-        self.w_act = nn.Parameter((torch.rand(n_agents, act_in, h1, generator=generator) * 2 - 1) * bound)
-        self.b1 = nn.Parameter((torch.rand(n_agents, 1, h1, generator=generator) * 2 - 1) * bound)
-        self.rest = BatchedMLP(n_agents, h1, hidden[1:], 1, "none", generator)
-
-    def obs_features(self, obs_flat: torch.Tensor) -> torch.Tensor:
-        return torch.matmul(obs_flat, self.w_obs) + self.b1
-
-    def forward(self, obs_flat: torch.Tensor, act_joint: torch.Tensor,
-                obs_feat: torch.Tensor | None = None) -> torch.Tensor:
-        if obs_feat is None:
-            obs_feat = self.obs_features(obs_flat)
-        h = torch.relu(obs_feat + torch.matmul(act_joint, self.w_act))
-        return self.rest(h).squeeze(-1)
-
-
 class Batch(NamedTuple):
     """A replay sample of ``K`` joint transitions. ``next_act`` holds the actions the agents took at
-    ``next_obs`` where the trainer knows them (scripted agents' actions; zero where it passed none); the
-    learner uses it for agents that do not learn, and the target actors for those that do."""
+    ``next_obs`` where the trainer knows them (scripted agents' actions), NaN elsewhere; the learner uses the
+    known ones in its TD target and its target actors for the others (``MADDPG.target_next_actions``)."""
 
     obs: torch.Tensor  # [K, N, D]
     act: torch.Tensor  # [K, N, 2]
@@ -181,9 +70,10 @@ class ReplayBuffer:
     def add(self, obs: Any, act: Any, rew: Any, next_obs: Any, next_act: Any = None) -> None:
         """Append a batch of ``B`` transitions (numpy or torch), wrapping around when full. ``next_act``
         ``[B, N, 2]``: the actions taken at ``next_obs`` (needed for scripted agents, whose next action no
-        target actor knows); None stores zeros (the static evaders' action)."""
-        if next_act is None:
-            next_act = torch.zeros_like(torch.as_tensor(act, dtype=torch.float32))
+        target actor knows); NaN entries (and None: all) mean unknown, so the learner takes its target
+        actors' next action there (zero for agents that do not learn)."""
+        if next_act is None:  # unknown: the target actors decide (zero for agents that do not learn)
+            next_act = torch.full_like(torch.as_tensor(act, dtype=torch.float32), float("nan"))
         values = (obs, act, rew, next_obs, next_act)
         tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in values]
         b = tensors[0].shape[0]
@@ -213,9 +103,9 @@ class ReplayBuffer:
         self.size = 0
         if sd["obs"].shape[0]:
             if "next_act" not in sd:
-                log.warning("replay buffer saved before next actions were stored: its %d transitions get zero "
-                            "next actions (scripted agents' TD targets bootstrap on a zero action until they "
-                            "are overwritten)", sd["obs"].shape[0])
+                log.warning("replay buffer saved without next actions: its %d transitions bootstrap on the "
+                            "target actors (zero for agents that do not learn) until they are overwritten",
+                            sd["obs"].shape[0])
             self.add(sd["obs"], sd["act"], sd["rew"], sd["next_obs"], sd.get("next_act"))
 
 
@@ -239,102 +129,219 @@ def soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
         t.lerp_(o, tau)
 
 
+def global_state_dim(spec: SwarmSpec) -> int:
+    """Size of ``global_state``: 4 per agent (position, velocity) + 3 per observed obstacle."""
+    return 4 * spec.n_agents + 3 * spec.layout(spec.roles[0])["obstacles"].rows
+
+
+def global_state(spec: SwarmSpec, obs: torch.Tensor) -> torch.Tensor:
+    """The global state ``[K, 4N + 3M]`` of joint observations ``[K, N, D]``: every agent's position, then
+    every agent's velocity [m, m/s; world frame], then every obstacle's centre and radius [m], obstacles
+    ordered by x so that their order stays fixed through an episode.
+
+    Read from the observations, which carry each agent's own position and velocity exactly and every
+    obstacle (``sensing.n_obstacles_observed >= arena.n_obstacles``, checked by ``MADDPG``) under either
+    observability: so it needs nothing beyond what the replay buffer stores, and the final observation of
+    an episode (``info["final_obs"]``) gives the final state."""
+    k, n = obs.shape[0], obs.shape[1]
+    cols = []
+    for role in spec.roles:
+        lay = spec.layout(role)
+        sp, sv = lay["self_pos"].start, lay["self_vel"].start
+        cols.append([sp, sp + 1, sv, sv + 1])
+    idx = torch.tensor(cols, device=obs.device).unsqueeze(0).expand(k, n, 4)
+    pv = torch.gather(obs, 2, idx)  # [K, N, 4]
+    ob = spec.layout(spec.roles[0])["obstacles"]
+    o = obs[:, 0, ob.slice].reshape(k, ob.rows, 3)
+    centre = o[..., :2] + pv[:, :1, :2]  # agent 0 sees them relative to itself
+    obst = torch.cat([centre, o[..., 2:]], dim=-1)
+    order = centre[..., 0].argsort(dim=1)
+    obst = torch.gather(obst, 1, order.unsqueeze(-1).expand(k, ob.rows, 3))
+    return torch.cat([pv[..., :2].reshape(k, -1), pv[..., 2:].reshape(k, -1), obst.reshape(k, -1)], dim=1)
+
+
+OPTIONS = ("algorithm", "critic", "share_params", "obs_scaling")
+"""The ``TrainConfig`` fields that shape the learner's tensors (a state dict loads only into the same)."""
+
+
 class MADDPG:
-    """All agents' actors, critics, their targets and optimizers for one spec."""
+    """All agents' actors, critics, their targets and optimizers for one spec.
+
+    Options (``TrainConfig``): ``share_params`` (one actor and critic per role), ``critic = "global"`` (the
+    critics read ``global_state`` instead of every observation), ``algorithm = "matd3"`` (twin critics,
+    target policy smoothing, delayed actor and target updates), ``obs_scaling`` (actor inputs mapped to
+    [-1, 1] from the spec's ranges). With every option off the learner is the paper's MADDPG, computed
+    exactly as before the options existed."""
 
     def __init__(self, spec: SwarmSpec, cfg: TrainConfig, device: str | torch.device | None = None) -> None:
         self.spec = spec
         self.cfg = cfg
-        self.device = torch.device(device or cfg.device)
+        self.device = dev = torch.device(device or cfg.device)
         n, d = spec.n_agents, spec.max_obs_dim
         self.n_agents, self.obs_dim = n, d
         self.obs_dims = [spec.obs_dim(r) for r in spec.roles]
+        roles = list(spec.roles)
+        if cfg.share_params:  # model m serves every agent of the m-th role present; slot: agent within role
+            present = sorted(set(roles), key=roles.index)
+            self.model_of = [present.index(r) for r in roles]
+            slot = [roles[:i].count(r) for i, r in enumerate(roles)]
+        else:
+            self.model_of, slot = list(range(n)), [0] * n
+        m = self.n_models = max(self.model_of) + 1
+        self.twins = 2 if cfg.algorithm == "matd3" else 1
+        if cfg.critic == "global":
+            if spec.sensing.n_obstacles_observed < spec.arena.n_obstacles:
+                raise SpecError(f"train.critic = 'global' reads the obstacles from the observations: it needs "
+                                f"sensing.n_obstacles_observed >= arena.n_obstacles ({spec.arena.n_obstacles}), "
+                                f"got {spec.sensing.n_obstacles_observed}")
+            critic_in = global_state_dim(spec)
+        else:
+            critic_in = n * d
+        # row r of a critic call is (twin r // N, agent r % N): model twin x M + model_of[agent]
+        rows = [t * m + self.model_of[i] for t in range(self.twins) for i in range(n)]
+        self._actor_ix = _index(self.model_of, m, dev)
+        self._critic_ix = _index(rows, self.twins * m, dev)
+        self._actor_critic_ix = _index(rows[:n], self.twins * m, dev)  # the actor step asks twin 0
+        self._slot = torch.tensor(slot * self.twins, device=dev) if cfg.share_params else None
+        n_slots = max(slot) + 1 if cfg.share_params else 0
         g = torch.Generator().manual_seed(cfg.seed)
-        self.actors = BatchedMLP(n, d, cfg.actor_hidden, 2, "tanh", g)
-        self.critics = BatchedCritic(n, n * d, n * 2, cfg.critic_hidden, g)
-        self.actors_tgt = BatchedMLP(n, d, cfg.actor_hidden, 2, "tanh", g)
-        self.critics_tgt = BatchedCritic(n, n * d, n * 2, cfg.critic_hidden, g)
+        self.actors = BatchedMLP(m, d, cfg.actor_hidden, 2, "tanh", g)
+        self.critics = BatchedCritic(self.twins * m, critic_in, n * 2, cfg.critic_hidden, g, n_slots)
+        self.actors_tgt = BatchedMLP(m, d, cfg.actor_hidden, 2, "tanh", g)
+        self.critics_tgt = BatchedCritic(self.twins * m, critic_in, n * 2, cfg.critic_hidden, g, n_slots)
         self.actors_tgt.load_state_dict(self.actors.state_dict())
         self.critics_tgt.load_state_dict(self.critics.state_dict())
-        for m in (self.actors, self.critics, self.actors_tgt, self.critics_tgt):
-            m.to(self.device)
-        for m in (self.actors_tgt, self.critics_tgt):
-            m.requires_grad_(False)
+        for mod in (self.actors, self.critics, self.actors_tgt, self.critics_tgt):
+            mod.to(dev)
+        for mod in (self.actors_tgt, self.critics_tgt):
+            mod.requires_grad_(False)
         self.actor_opt = torch.optim.Adam(self.actors.parameters(), lr=cfg.actor_lr)
         self.critic_opt = torch.optim.Adam(self.critics.parameters(), lr=cfg.critic_lr)
-        learn = torch.ones(n, device=self.device)
+        learn = torch.ones(n, device=dev)
         if cfg.evaders in ("static", "scripted"):  # scripted evaders' actions come from the trainer
             learn[spec.team.n_team:] = 0.0
         self.learn_mask = learn  # [N] 1 for agents whose actor and critic train
         self._learns = learn > 0
-        self._eye = torch.eye(n, device=self.device).view(n, 1, n, 1)
+        # per-agent loss weights: a shared model averages over the agents it serves (sum without sharing)
+        share = torch.tensor([1.0 / self.model_of.count(self.model_of[i]) for i in range(n)], device=dev)
+        self._weight = learn if not cfg.share_params else learn * share
+        self._eye = torch.eye(n, device=dev).view(n, 1, n, 1)
         self.updates = 0
-        # the int8-robustness penalty's observation ranges per agent ([N, 1, D], zero on the padding columns)
+        # the observation ranges per agent ([N, 1, D], zero on the padding columns): the int8-robustness
+        # penalty's random observations and the obs_scaling map
         lo = torch.zeros(n, 1, d)
         hi = torch.zeros(n, 1, d)
         for i, role in enumerate(spec.roles):
             r_lo, r_hi = spec.layout(role).bounds()
             lo[i, 0, :len(r_lo)] = torch.tensor(r_lo)
             hi[i, 0, :len(r_hi)] = torch.tensor(r_hi)
-        self._obs_lo, self._obs_span = lo.to(self.device), (hi - lo).to(self.device)
-        self.reg_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 7)
+        self._obs_lo, self._obs_span = lo.to(dev), (hi - lo).to(dev)
+        self._in_scale = self._in_shift = None
+        if cfg.obs_scaling:  # x -> 2 (x - lo) / span - 1; padding columns (span 0) stay 0
+            span = hi - lo
+            scale = torch.where(span > 0, 2.0 / span.clamp(min=1e-12), torch.zeros(()))
+            self._in_scale = scale.to(dev)
+            self._in_shift = torch.where(span > 0, -lo * scale - 1.0, torch.zeros(())).to(dev)
+        self.reg_gen = torch.Generator(device=dev).manual_seed(cfg.seed + 7)
+        self.target_gen = torch.Generator(device=dev).manual_seed(cfg.seed + 8)
+        self._last_actor: dict[str, float] = {}
+
+    def options(self) -> dict[str, Any]:
+        return {name: getattr(self.cfg, name) for name in OPTIONS}
 
     # -------------------------------------------------------------------------------------- acting
+    def actor_input(self, obs: torch.Tensor) -> torch.Tensor:
+        """What the actors see of observations ``[N, B, D]`` (scaled with ``obs_scaling``)."""
+        return obs if self._in_scale is None else obs * self._in_scale + self._in_shift
+
     @torch.no_grad()
     def act(self, obs: np.ndarray | torch.Tensor, noise_std: float = 0.0,
             generator: torch.Generator | None = None) -> torch.Tensor:
         """Actions ``[B, N, 2]`` in [-1, 1] for observations ``[B, N, D]``, with Gaussian noise of std
         ``noise_std``. Static evaders always get zero."""
         o = torch.as_tensor(obs, dtype=torch.float32, device=self.device).transpose(0, 1)
-        a = self.actors(o)  # [N, B, 2]
+        a = self.actors(self.actor_input(o), self._actor_ix)  # [N, B, 2]
         if noise_std > 0:
             a = a + noise_std * torch.randn(a.shape, generator=generator, device=self.device)
         a = a.clamp(-1.0, 1.0) * self.learn_mask.view(-1, 1, 1)
         return a.transpose(0, 1)
 
     # ------------------------------------------------------------------------------------- learning
+    def critic_input(self, obs: torch.Tensor) -> torch.Tensor:
+        """The critics' state input ``[K, S]`` of joint observations ``[K, N, D]``."""
+        if self.cfg.critic == "global":
+            return global_state(self.spec, obs)
+        return obs.reshape(obs.shape[0], -1)
+
     @torch.no_grad()
     def td_target(self, batch: Sequence[torch.Tensor]) -> torch.Tensor:
-        """``y_i = r_i x reward_scale + gamma x Q'_i(O', a'_1 .. a'_N)`` for every agent ``[N, K]``; a
-        ``batch`` without next actions (4 tensors) bootstraps non-learning agents on a zero action."""
+        """``y_i = r_i x reward_scale + gamma x Q'_i(S', a'_1 .. a'_N)`` for every agent ``[N, K]`` (with
+        twin critics the smaller of the two ``Q'``); a ``batch`` without next actions (4 tensors) bootstraps
+        non-learning agents on a zero action."""
         rew, next_obs = batch[2], batch[3]
         k = next_obs.shape[0]
         next_act = self.target_next_actions(next_obs, batch[4] if len(batch) > 4 else None)
-        q_next = self.critics_tgt(next_obs.reshape(k, -1), next_act.reshape(k, -1))
+        q_next = self.critics_tgt(self.critic_input(next_obs), next_act.reshape(k, -1), index=self._critic_ix,
+                                  slot=self._slot)
+        if self.twins > 1:
+            q_next = q_next.view(self.twins, self.n_agents, k).amin(0)
         return rew.t() * self.cfg.reward_scale + self.cfg.gamma * q_next
 
     def target_next_actions(self, next_obs: torch.Tensor, stored: torch.Tensor | None) -> torch.Tensor:
-        """Next actions ``[K, N, 2]`` of the TD target: the target actors' for agents that learn, the stored
-        ones (what the scripted agents did; zero when none were stored) for those that do not."""
-        tgt = self.actors_tgt(next_obs.transpose(0, 1)).transpose(0, 1)
+        """Next actions ``[K, N, 2]`` of the TD target: the stored ones where they are known (what a scripted
+        agent or a frozen opponent did at ``next_obs``); where they are NaN (unknown, the replay buffer's
+        default) or not given, the target actors' for agents that learn (with ``matd3``'s clipped smoothing
+        noise) and zero for those that do not (static evaders)."""
+        tgt = self.actors_tgt(self.actor_input(next_obs.transpose(0, 1)), self._actor_ix).transpose(0, 1)
+        if self.cfg.algorithm == "matd3":
+            c = self.cfg.target_noise_clip
+            noise = torch.randn(tgt.shape, generator=self.target_gen, device=self.device) * self.cfg.target_noise
+            tgt = (tgt + noise.clamp(-c, c)).clamp(-1.0, 1.0)
+        unknown = torch.where(self._learns.view(1, -1, 1), tgt, torch.zeros_like(tgt))
         if stored is None:
-            stored = torch.zeros_like(tgt)
-        return torch.where(self._learns.view(1, -1, 1), tgt, stored)
+            return unknown
+        return torch.where(torch.isnan(stored), unknown, stored)
 
-    def update(self, batch: tuple[torch.Tensor, ...]) -> dict[str, float]:
-        """One critic step, one actor step and a soft target update for every agent at once."""
-        obs, act, rew, next_obs = batch[:4]  # [K, N, D], [K, N, 2], [K, N], [K, N, D]
+    def update(self, batch: Sequence[torch.Tensor]) -> dict[str, float]:
+        """One critic step, then (every ``policy_delay``-th update with ``matd3``, else always) one actor
+        step and a soft target update, for every agent at once. On updates without an actor step the actor
+        figures returned are those of the last actor step."""
+        obs, act = batch[0], batch[1]  # [K, N, D], [K, N, 2]
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
-        obs_flat = obs.reshape(k, -1)
-        act_flat = act.reshape(k, -1)
-        mask = self.learn_mask
         y = self.td_target(batch)
-        obs_feat = self.critics.obs_features(obs_flat)
-        q = self.critics(obs_flat, act_flat, obs_feat)
-        critic_loss_n = (q - y).pow(2).mean(1)  # [N]
+        state = self.critic_input(obs)
+        feat = self.critics.rows(self.critics.obs_features(state), self._critic_ix, self._slot)  # [T N, K, h1]
+        q = self.critics(state, act.reshape(k, -1), feat, self._critic_ix, self._slot)
+        y_rows = y if self.twins == 1 else y.repeat(self.twins, 1)
+        w_rows = self._weight if self.twins == 1 else self._weight.repeat(self.twins)
+        critic_loss_n = (q - y_rows).pow(2).mean(1)  # [T N]
         self.critic_opt.zero_grad(set_to_none=True)
-        (critic_loss_n * mask).sum().backward()
+        (critic_loss_n * w_rows).sum().backward()
         critic_norm = clip_grad_norm_per_agent(list(self.critics.parameters()), cfg.grad_clip)
         self.critic_opt.step()
+        self.updates += 1
+        if cfg.algorithm != "matd3" or self.updates % cfg.policy_delay == 0:
+            self._last_actor = self._actor_step(obs, act, state, feat[:n].detach())
+            soft_update(self.actors_tgt, self.actors, cfg.tau)
+            soft_update(self.critics_tgt, self.critics, cfg.tau)
+        w = self.learn_mask / self.learn_mask.sum()
+        return {**self._last_actor, "critic_loss": float((critic_loss_n.detach()[:n] * w).sum()),
+                "q_mean": float(q.detach()[:n].mean()), "critic_grad_norm": float(critic_norm.mean())}
 
-        # actor step: critic i sees agent i's action replaced by mu_i(o_i), the others from the sample
-        pre = self.actors.forward_pre(obs.transpose(0, 1))  # [N, K, 2]
+    def _actor_step(self, obs: torch.Tensor, act: torch.Tensor, state: torch.Tensor,
+                    feat: torch.Tensor) -> dict[str, float]:
+        """Critic i (twin 0) sees agent i's action replaced by mu_i(o_i), the others' from the sample."""
+        cfg = self.cfg
+        k, n = obs.shape[0], self.n_agents
+        x = self.actor_input(obs.transpose(0, 1))
+        pre = self.actors.forward_pre(x, self._actor_ix)  # [N, K, 2]
         mu = torch.tanh(pre)
         joint = act.unsqueeze(0) * (1 - self._eye) + mu.unsqueeze(2) * self._eye  # [N, K, N, 2]
         self.critics.requires_grad_(False)
         try:
-            q_pi = self.critics(obs_flat, joint.reshape(n, k, -1), obs_feat.detach())
+            q_pi = self.critics(state, joint.reshape(n, k, -1), feat, self._actor_critic_ix,
+                                None if self._slot is None else self._slot[:n])
         finally:
             self.critics.requires_grad_(True)
         actor_loss_n = -q_pi.mean(1) + cfg.action_reg * pre.pow(2).mean((1, 2))
@@ -342,53 +349,67 @@ class MADDPG:
             robust_n = self.int8_sensitivity(obs.transpose(0, 1))
             actor_loss_n = actor_loss_n + cfg.int8_robustness * robust_n
         self.actor_opt.zero_grad(set_to_none=True)
-        (actor_loss_n * mask).sum().backward()
+        (actor_loss_n * self._weight).sum().backward()
         actor_norm = clip_grad_norm_per_agent(list(self.actors.parameters()), cfg.grad_clip)
         self.actor_opt.step()
-
-        soft_update(self.actors_tgt, self.actors, cfg.tau)
-        soft_update(self.critics_tgt, self.critics, cfg.tau)
-        self.updates += 1
-        w = mask / mask.sum()
+        w = self.learn_mask / self.learn_mask.sum()
         extra = {"int8_sensitivity": float((robust_n.detach() * w).sum())} if cfg.int8_robustness > 0 else {}
-        return {**extra, "critic_loss": float((critic_loss_n.detach() * w).sum()),
-                "actor_loss": float((actor_loss_n.detach() * w).sum()),
-                "q_mean": float(q.detach().mean()),
-                "critic_grad_norm": float(critic_norm.mean()), "actor_grad_norm": float(actor_norm.mean())}
+        return {**extra, "actor_loss": float((actor_loss_n.detach() * w).sum()),
+                "actor_grad_norm": float(actor_norm.mean())}
 
     def int8_sensitivity(self, obs: torch.Tensor, worst: float = 0.05) -> torch.Tensor:
         """Per agent [N]: the mean squared change of the actions on ``obs`` [N, K, D] and on K observations
         uniform within each agent's per-field ranges when every hidden layer's weights get uniform noise of
         one int8 step (``max|w| / INT8_QMAX`` per output neuron), plus the mean of the worst ``worst`` share
-        of those changes (the C export is judged on its worst observation)."""
+        of those changes (the C export is judged on its worst observation). With ``obs_scaling`` the noise
+        is on the weights before the scaling is folded in (close to, not exactly, the exported int8 step)."""
         n, k, _ = obs.shape
         rand = self._obs_lo + self._obs_span * torch.rand(n, k, obs.shape[2], generator=self.reg_gen,
                                                           device=self.device)
-        x = torch.cat([obs, rand], dim=1)  # [N, 2K, D]
+        x = self.actor_input(torch.cat([obs, rand], dim=1))  # [N, 2K, D]
         noisy = x
-        last = len(self.actors.weights) - 1
-        for li, (w, b) in enumerate(zip(self.actors.weights, self.actors.biases)):
+        layers = self.actors.layers(self._actor_ix)
+        last = len(layers) - 1
+        for li, (w, b) in enumerate(layers):
             if li < last:
                 step = w.detach().abs().amax(dim=1, keepdim=True) / INT8_QMAX  # [N, 1, out]: per output neuron
                 w = w + (torch.rand(w.shape, generator=self.reg_gen, device=self.device) - 0.5) * step
             noisy = torch.matmul(noisy, w) + b
             noisy = torch.relu(noisy) if li < last else torch.tanh(noisy)
-        change = (noisy - self.actors(x)).pow(2).sum(-1)  # [N, 2K]
+        change = (noisy - self.actors(x, self._actor_ix)).pow(2).sum(-1)  # [N, 2K]
         top = max(1, int(round(worst * change.shape[1])))
         return change.mean(1) + change.topk(top, dim=1).values.mean(1)
 
     # --------------------------------------------------------------------------------- persistence
     def to_actors(self) -> list[Actor]:
-        """Per-agent ``Actor`` modules with exactly ``spec.obs_dim(role)`` inputs (the export contract)."""
-        return self.actors.to_actors(self.obs_dims)
+        """Per-agent ``Actor`` modules with exactly ``spec.obs_dim(role)`` inputs (the export contract): copies
+        of the role's model with ``share_params``, the scaling folded into the first layer with
+        ``obs_scaling``, so that they take raw observations."""
+        index = self.model_of if self.cfg.share_params else None
+        if self._in_scale is None:
+            return self.actors.to_actors(self.obs_dims, index)
+        return self.actors.to_actors(self.obs_dims, index, self._in_scale[:, 0], self._in_shift[:, 0])
+
+    def frozen_actors(self) -> BatchedMLP:
+        """Every agent's actor as one frozen module on raw observations ``[N, B, D] -> [N, B, 2]`` (one row per
+        agent whatever ``share_params``, the scaling folded in): what an opponent snapshot keeps."""
+        return BatchedMLP.from_actors(self.to_actors(), self.obs_dim).to(self.device).requires_grad_(False)
 
     def state_dict(self) -> dict[str, Any]:
         return {"actors": self.actors.state_dict(), "critics": self.critics.state_dict(),
                 "actors_tgt": self.actors_tgt.state_dict(), "critics_tgt": self.critics_tgt.state_dict(),
                 "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
-                "updates": self.updates, "reg_gen": self.reg_gen.get_state()}
+                "updates": self.updates, "reg_gen": self.reg_gen.get_state(),
+                "target_gen": self.target_gen.get_state(), "options": self.options(),
+                "last_actor": dict(self._last_actor)}
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
+        # absent in checkpoints written before the options: those were trained with every option off
+        saved = sd.get("options", {name: TrainConfig.__dataclass_fields__[name].default for name in OPTIONS})
+        for name in OPTIONS:
+            if saved.get(name) != getattr(self.cfg, name):
+                raise ValueError(f"this learner state was trained with train.{name} = {saved.get(name)!r}, the "
+                                 f"config has {getattr(self.cfg, name)!r}: use the run's own config.toml")
         self.actors.load_state_dict(sd["actors"])
         self.critics.load_state_dict(sd["critics"])
         self.actors_tgt.load_state_dict(sd["actors_tgt"])
@@ -398,8 +419,17 @@ class MADDPG:
         self.actor_opt.load_state_dict(copy.deepcopy(sd["actor_opt"]))
         self.critic_opt.load_state_dict(copy.deepcopy(sd["critic_opt"]))
         self.updates = int(sd["updates"])
-        if "reg_gen" in sd:  # absent in checkpoints written before the int8-robustness penalty
-            self.reg_gen.set_state(sd["reg_gen"].cpu() if self.device.type == "cpu" else sd["reg_gen"])
+        for name in ("reg_gen", "target_gen"):  # absent in checkpoints written before these streams
+            if name in sd:
+                getattr(self, name).set_state(sd[name].cpu() if self.device.type == "cpu" else sd[name])
+        self._last_actor = dict(sd.get("last_actor", {}))
+
+
+def _index(rows: Sequence[int], n_models: int, device: torch.device) -> torch.Tensor | None:
+    """The row -> model index of a batched call; None where row r is model r (no gather needed)."""
+    if list(rows) == list(range(n_models)):
+        return None
+    return torch.tensor(list(rows), device=device)
 
 
 # ------------------------------------------------------------------------------------------------

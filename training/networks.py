@@ -1,9 +1,18 @@
-"""Actor network shared by training and export: an MLP (two hidden layers of 64, ReLU) with a tanh output.
+"""Networks: the per-agent actor shared by training and export, and the stacked modules the learner trains.
 
-The exporter (``firmware_export.onnx_export``) and the C generator rely on exactly this structure:
-``net.0`` Linear(obs_dim, h1), ReLU, ``net.2`` Linear(h1, h2), ReLU, ``net.4`` Linear(h2, act_dim), Tanh.
+``Actor``: the export contract. The exporter (``firmware_export.onnx_export``) and the C generator rely on
+exactly this structure: ``net.0`` Linear(obs_dim, h1), ReLU, ``net.2`` Linear(h1, h2), ReLU, ``net.4``
+Linear(h2, act_dim), Tanh.
+
+``BatchedMLP`` and ``BatchedCritic``: ``M`` independent networks with stacked weights ``[M, in, out]``,
+evaluated with one batched matmul per layer. Calls take an optional ``index`` ``[E]`` of model numbers: the
+e-th row of the batch is evaluated by model ``index[e]`` (parameter sharing: several agents, one model;
+twin critics: two models per agent). Without it, row e is model e (the plain one-model-per-agent path).
 """
 from __future__ import annotations
+
+import math
+from typing import Sequence
 
 import torch
 from torch import nn
@@ -25,3 +34,165 @@ class Actor(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.net(obs)
+
+
+def _uniform(shape: tuple[int, ...], bound: float, generator: torch.Generator | None) -> torch.Tensor:
+    return (torch.rand(*shape, generator=generator) * 2 - 1) * bound
+
+
+def _pick(t: torch.Tensor, index: torch.Tensor | None) -> torch.Tensor:
+    return t if index is None else t.index_select(0, index)
+
+
+def shared_matmul(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """``x @ w[m]`` for every model m: ``[B, in] x [M, in, out] -> [M, B, out]``, or ``torch.matmul`` when
+    ``x`` is per model ``[M, B, in]``. A shared ``x`` goes through one ``[B, in] x [in, M out]`` GEMM instead
+    of a batched matmul over M copies of ``x`` (torch's broadcast copies it): the same products and sums,
+    several times faster for the critics' wide state input, forward and backward."""
+    if x.dim() != 2:
+        return torch.matmul(x, w)
+    m, n_in, n_out = w.shape
+    y = torch.mm(x, w.permute(1, 0, 2).reshape(n_in, m * n_out))
+    return y.view(x.shape[0], m, n_out).transpose(0, 1)
+
+
+class BatchedMLP(nn.Module):
+    """``n_models`` independent MLPs evaluated together: ``[E, B, in] -> [E, B, out]`` (``E = n_models``, or
+    ``len(index)``).
+
+    Layer k has weight ``[M, in_k, out_k]`` and bias ``[M, 1, out_k]``; hidden layers use ReLU, the output
+    layer ``out_act`` ("tanh" or "none"). ``forward`` also accepts an input shared by all rows ``[B, in]``.
+    """
+
+    def __init__(self, n_models: int, in_dim: int, hidden: Sequence[int], out_dim: int, out_act: str = "none",
+                 generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        if out_act not in ("tanh", "none"):
+            raise ValueError(f"out_act must be 'tanh' or 'none', got {out_act!r}")
+        self.n_models = n_models
+        self.widths = [in_dim, *hidden, out_dim]
+        self.out_act = out_act
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for fan_in, fan_out in zip(self.widths[:-1], self.widths[1:]):
+            # nn.Linear's default initialisation, drawn per model
+            bound = 1.0 / math.sqrt(fan_in)
+            self.weights.append(nn.Parameter(_uniform((n_models, fan_in, fan_out), bound, generator)))
+            self.biases.append(nn.Parameter(_uniform((n_models, 1, fan_out), bound, generator)))
+
+    def layers(self, index: torch.Tensor | None = None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(weight ``[E, in, out]``, bias ``[E, 1, out]``) per layer, rows picked by ``index``."""
+        return [(_pick(w, index), _pick(b, index)) for w, b in zip(self.weights, self.biases)]
+
+    def forward_pre(self, x: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+        """Output before the output activation."""
+        layers = self.layers(index)
+        last = len(layers) - 1
+        for k, (w, b) in enumerate(layers):
+            x = shared_matmul(x, w) + b  # a [B, in] input is shared by the E rows
+            if k < last:
+                x = torch.relu(x)
+        return x
+
+    def forward(self, x: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
+        y = self.forward_pre(x, index)
+        return torch.tanh(y) if self.out_act == "tanh" else y
+
+    # -- the per-agent Actor contract -----------------------------------------------------------------
+    def to_actors(self, in_dims: Sequence[int], index: Sequence[int] | None = None,
+                  in_scale: torch.Tensor | None = None, in_shift: torch.Tensor | None = None) -> list[Actor]:
+        """Per-agent ``Actor(in_dims[i])`` with the weights of model ``index[i]`` (default i); the first layer
+        keeps only the first ``in_dims[i]`` input columns (the rest only ever saw zero padding). With
+        ``in_scale``/``in_shift`` ``[len(in_dims), in]`` the model sees ``x * in_scale + in_shift``, which is
+        folded into the first layer: ``W' = diag(in_scale) W``, ``b' = b + in_shift W``."""
+        if self.out_act != "tanh":
+            raise ValueError("only a tanh-output BatchedMLP is an actor")
+        hidden = tuple(self.widths[1:-1])
+        out = []
+        for i, d in enumerate(in_dims):
+            m = i if index is None else int(index[i])
+            actor = Actor(int(d), self.widths[-1], hidden)
+            sd = {}
+            for k, (w, b) in enumerate(zip(self.weights, self.biases)):
+                wi = w[m].detach().cpu()
+                bi = b[m, 0].detach().cpu()
+                if k == 0:
+                    if in_scale is not None:
+                        scale, shift = in_scale[i].detach().cpu(), in_shift[i].detach().cpu()
+                        # float64 for the fold, so that it adds no error beyond float32's rounding
+                        bi = (bi.double() + shift.double() @ wi.double()).float()
+                        wi = (scale.double()[:, None] * wi.double()).float()
+                    wi = wi[:d]
+                sd[f"net.{2 * k}.weight"] = wi.t().contiguous().clone()
+                sd[f"net.{2 * k}.bias"] = bi.clone()
+            actor.load_state_dict(sd)
+            out.append(actor)
+        return out
+
+    @classmethod
+    def from_actors(cls, actors: Sequence[Actor], in_dim: int) -> "BatchedMLP":
+        """Stack per-agent actors (equal hidden widths) into one module taking ``in_dim`` >= every obs_dim
+        inputs; padding columns get zero weights."""
+        hidden = actors[0].hidden
+        if any(a.hidden != hidden or a.act_dim != actors[0].act_dim for a in actors):
+            raise ValueError("actors must share hidden widths and act_dim to be batched")
+        if any(a.obs_dim > in_dim for a in actors):
+            raise ValueError(f"an actor takes more than in_dim={in_dim} inputs")
+        m = cls(len(actors), in_dim, hidden, actors[0].act_dim, "tanh")
+        with torch.no_grad():
+            for i, a in enumerate(actors):
+                linears = [mod for mod in a.net if isinstance(mod, nn.Linear)]
+                for k, lin in enumerate(linears):
+                    w = lin.weight.detach().t()
+                    if k == 0:
+                        m.weights[k][i].zero_()
+                        m.weights[k][i, :a.obs_dim] = w
+                    else:
+                        m.weights[k][i] = w
+                    m.biases[k][i, 0] = lin.bias.detach()
+        return m
+
+
+class BatchedCritic(nn.Module):
+    """``n_models`` centralized critics ``Q(S, A)``: S a critic input shared by every row ``[B, state_in]``
+    (all observations, or the global state), A the joint action ``[B, act_in]`` (or per row ``[E, B, ...]``);
+    returns ``[E, B]``. The first layer is split into its state and action parts so that the (large, shared)
+    state part is multiplied once per model, not per action variant nor per agent sharing the model.
+
+    ``n_slots`` > 0 adds a one-hot input of that size (which agent of a shared model is evaluated: ``slot``
+    ``[E]``), kept as its weight rows ``w_id`` ``[M, n_slots, h1]``."""
+
+    def __init__(self, n_models: int, obs_in: int, act_in: int, hidden: Sequence[int],
+                 generator: torch.Generator | None = None, n_slots: int = 0) -> None:
+        super().__init__()
+        h1 = hidden[0]
+        bound = 1.0 / math.sqrt(obs_in + act_in + n_slots)
+        self.w_obs = nn.Parameter(_uniform((n_models, obs_in, h1), bound, generator))
+        self.w_act = nn.Parameter(_uniform((n_models, act_in, h1), bound, generator))
+        self.b1 = nn.Parameter(_uniform((n_models, 1, h1), bound, generator))
+        self.rest = BatchedMLP(n_models, h1, hidden[1:], 1, "none", generator)
+        self.n_slots = n_slots
+        if n_slots:
+            self.w_id = nn.Parameter(_uniform((n_models, n_slots, h1), bound, generator))
+
+    def obs_features(self, obs_flat: torch.Tensor) -> torch.Tensor:
+        """The state part of the first layer, per model ``[M, B, h1]``."""
+        return shared_matmul(obs_flat, self.w_obs) + self.b1
+
+    def rows(self, feat: torch.Tensor, index: torch.Tensor | None = None,
+             slot: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-model features ``[M, B, h1]`` -> per evaluated row ``[E, B, h1]`` (plus the row's one-hot)."""
+        if index is None:
+            return feat
+        out = feat.index_select(0, index)
+        if self.n_slots:
+            out = out + self.w_id[index, slot].unsqueeze(1)
+        return out
+
+    def forward(self, obs_flat: torch.Tensor, act_joint: torch.Tensor, obs_feat: torch.Tensor | None = None,
+                index: torch.Tensor | None = None, slot: torch.Tensor | None = None) -> torch.Tensor:
+        """``obs_feat``: ``rows(obs_features(obs_flat), index, slot)`` when the caller has it already."""
+        if obs_feat is None:
+            obs_feat = self.rows(self.obs_features(obs_flat), index, slot)
+        h = torch.relu(obs_feat + shared_matmul(act_joint, _pick(self.w_act, index)))
+        return self.rest(h, index).squeeze(-1)
