@@ -45,9 +45,9 @@ NOTIFY_STOP_VALID_MS = 200
 """The notify-setpoint-stop packet's remain-valid field [ms]; firmware since 2023 ignores it and hands over at
 once (``crtp_commander_generic.c`` notifySetpointsStopDecoder), older firmware kept the last streamed
 setpoint valid this long."""
-ESTOP_FEED_PERIOD_S = ESTOP_WATCHDOG_S / 10.0
-"""Interval of the emergency-stop watchdog packets [s]: ten per timeout, so that a lost packet or a short
-stall of the ground station does not drop the drone."""
+ESTOP_FEED_PERIOD_S = ESTOP_WATCHDOG_S / 5.0
+"""Interval of the emergency-stop watchdog packets [s]: five per timeout, so that lost packets or a stall of
+the ground station shorter than 0.8 s do not drop the drone."""
 SLOW_VARS = ("pm.vbat", "radio.rssi", "kalman.varPX", "kalman.varPY", "kalman.varPZ")
 
 _drivers_lock = threading.Lock()

@@ -121,16 +121,26 @@ class SimCrazyflie:
         return int((now - self.boot_time) * 1000.0) & 0xFFFFFF
 
     def _snapshot(self, now: float) -> dict:
+        """The values log blocks read at ``now``, each group computed only when a block asks for it (the
+        simulator answers every drone's blocks at 50-100 Hz)."""
+        return _Snapshot(self, now)
+
+    def _snapshot_group(self, group: str, now: float) -> dict:
         i, fw, m = self.index, self.firmware, self.model
-        pos = m.estimated_position(i, fw.extpos_fresh(now), fw.extpos, fw.extpos_age(now))
-        vel = m.estimated_velocity(i)
-        var = m.position_variance(i)
+        if group == "pos":
+            pos = m.estimated_position(i, fw.extpos_fresh(now), fw.extpos, fw.extpos_age(now))
+            return {"x": pos[0], "y": pos[1], "z": pos[2], "yaw": m.yaw_deg[i]}
+        if group == "vel":
+            vel = m.estimated_velocity(i)
+            return {"vx": vel[0], "vy": vel[1], "vz": vel[2]}
+        if group == "var":
+            var = m.position_variance(i)
+            return {"varPX": var[0], "varPY": var[1], "varPZ": var[2]}
+        if group == "pm":
+            vbat = m.battery_voltage(i, fw.motors_on)
+            return {"vbat": vbat, "pm_state": 3 if vbat < self.params["pm.lowVoltage"] else 0, "rssi": RSSI_DBM}
         info = fw.supervisor_info()
-        vbat = m.battery_voltage(i, fw.motors_on)
-        return {"x": pos[0], "y": pos[1], "z": pos[2], "vx": vel[0], "vy": vel[1], "vz": vel[2],
-                "yaw": m.yaw_deg[i], "vbat": vbat, "pm_state": 3 if vbat < self.params["pm.lowVoltage"] else 0,
-                "rssi": RSSI_DBM, "varPX": var[0], "varPY": var[1], "varPZ": var[2], "info": info,
-                "canfly": int(bool(info & 0x8)), "isFlying": int(bool(info & 0x10))}
+        return {"info": info, "canfly": int(bool(info & 0x8)), "isFlying": int(bool(info & 0x10))}
 
     # ---- inbound -----------------------------------------------------------------------------------
 
@@ -457,6 +467,23 @@ class SimCrazyflie:
     def control(self, now: float) -> tuple[np.ndarray, float, bool, bool]:
         i, m = self.index, self.model
         return self.firmware.control(now, m.pos[i], m.vel[i], float(m.yaw_deg[i]))
+
+
+_SNAPSHOT_GROUP = {"x": "pos", "y": "pos", "z": "pos", "yaw": "pos", "vx": "vel", "vy": "vel", "vz": "vel",
+                   "varPX": "var", "varPY": "var", "varPZ": "var", "vbat": "pm", "pm_state": "pm", "rssi": "pm",
+                   "info": "sup", "canfly": "sup", "isFlying": "sup"}
+
+
+class _Snapshot(dict):
+    """One instant's log values, filled group by group on first read."""
+
+    def __init__(self, drone: SimCrazyflie, now: float) -> None:
+        super().__init__()
+        self._drone, self._now = drone, now
+
+    def __missing__(self, key: str):
+        self.update(self._drone._snapshot_group(_SNAPSHOT_GROUP[key], self._now))
+        return dict.__getitem__(self, key)
 
 
 _HANDLERS = {
