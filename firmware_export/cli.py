@@ -46,8 +46,8 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", required=True, type=Path, help="actor ONNX file, e.g. models/role_based/pursuer_0.onnx")
     p.add_argument("--out", required=True, type=Path, help="output directory, e.g. build/c/")
     p.add_argument("--quant", choices=QUANTS, default="float",
-                   help="float: float32 weights; int8w: hidden layers int8 with one float scale per neuron, the "
-                        "output layer float")
+                   help="float: float32 weights; int8w: hidden layers int8 with one float scale per neuron times "
+                        "q15 inputs (SMLAD on the Cortex-M4), the output layer float")
     p.add_argument("--weights-in", choices=WEIGHTS_IN, default=DEFAULT_WEIGHTS_IN,
                    help="ram (default): swarm_policy_init copies the tables to main SRAM (zero wait states; fits "
                         "the stock Crazyflie firmware); ccm: to the STM32F405's CCM RAM (zero wait states; the stock "

@@ -2,8 +2,10 @@
 
 Scheme (the same one ``policy.h`` states):
 
-- hidden layers: int8 weights, one float scale per output neuron (per row, symmetric, ``scale = max|w| / 127``),
-  float accumulation, then ``y = act(scale * acc + bias)``;
+- hidden layers: int8 weights, one float scale per output neuron (per row, symmetric, ``scale = max|w| / 127``);
+  the C takes each such layer's input as q15 (one scale per vector, ``max|x| / 32767``), accumulates
+  ``q . x_q`` exactly in int32 (SMLAD on the Cortex-M4), then ``y = act(scale * x_scale * acc + bias)``
+  (``int8_forward`` is that arithmetic in numpy);
 - the output layer (64 -> 2, 0.5 KB as float) stays float32: on trained actors the hidden activations are
   large (tens), so rounding its 128 weights alone moves the action by up to ~0.2.
 
