@@ -248,7 +248,8 @@ def test_several_runs_give_mean_and_min_max_beside_the_classical_team(tmp_path, 
     assert e["classical"]["mean_min_dist"] == json.loads(single.read_text())["mean_min_dist"]
     text = md.read_text()
     assert text == stdout[:len(text)]
-    assert "learned beats classical (runs of 2)" in text and "| scripted |" in text
+    assert "as close and tracking as often (runs of 2)" in text and "| scripted |" in text
+    assert "team contacts <= classical (runs of 2)" in text
     assert f"{e['mean']['mean_min_dist']:.3f} [{e['min']['mean_min_dist']:.3f}-{e['max']['mean_min_dist']:.3f}]" in text
 
 
@@ -256,3 +257,24 @@ def test_a_glob_that_matches_nothing_is_an_error(capsys, monkeypatch):
     monkeypatch.chdir(ROOT)
     rc, _, err = in_process(capsys, "evaluate", "--run", "runs/none_such_*", "--no-progress")
     assert rc == 2 and "matches no folder" in err
+
+
+def test_run_counts_compare_each_run_with_the_classical_team_on_its_evaders():
+    from training.aggregate import fewer_contacts, markdown, spread, wins
+
+    def m(d, t, c):
+        return {"mean_min_dist": d, "tracking_rate": t, "team_contacts_per_episode": c, "coverage": 0.5,
+                "teammate_contacts_per_episode": c / 2, "team_obstacle_contacts_per_episode": c / 2,
+                "evader_contacts_per_episode": 0.0, "captures_per_episode": 1.0}
+    runs = [m(0.4, 0.5, 1.0), m(0.6, 0.5, 0.1), m(0.4, 0.2, 0.3)]
+    scripted = {"runs": runs, **spread(runs), "classical": m(0.5, 0.4, 0.3)}
+    # co-trained evaders differ per run: each run meets the classical team on its own evaders
+    own = [m(0.3, 0.6, 0.0), m(0.7, 0.6, 0.2), m(0.5, 0.1, 0.4)]
+    learned = {"runs": runs, **spread(runs), "classical": {"runs": own, **spread(own)}}
+    assert (wins(scripted), fewer_contacts(scripted)) == (1, 2)  # run 0 closer and tracking more; runs 1, 2
+    assert (wins(learned), fewer_contacts(learned)) == (1, 2)  # run 2 (0.4 <= 0.5, 0.2 >= 0.1); runs 1, 2
+    assert spread(runs)["min"]["mean_min_dist"] == 0.4 and spread(runs)["max"]["tracking_rate"] == 0.5
+    doc = {"config": "x", "sources": ["a", "b", "c"], "episodes": 5, "seed": 1, "eval_seed_offset": 10,
+           "evaders": {"scripted": scripted, "learned": learned}}
+    text = markdown(doc)
+    assert "| scripted | 0.467 [0.400-0.600] | 0.500 |" in text and text.count("| 1/3 | 2/3 |") == 2

@@ -5,8 +5,9 @@
 pursuer team against the same evaders: once per kind for scripted evaders (they are the same for every run),
 once per run for each run's co-trained evaders (then aggregated like the runs). The Markdown output is the
 table ``results/README.md`` shows: a row per evader kind, the learned teams' mean with min-max over runs
-beside the classical team, the split collision counts, and on how many runs the learned team beat the
-classical one (min distance <= and tracking rate >=).
+beside the classical team, the split collision counts, on how many runs the learned team was as close and
+tracked as often as the classical one (min distance <= and tracking rate >=), and on how many its own
+contacts (teammate + team-obstacle) per episode were at most the classical team's.
 """
 from __future__ import annotations
 
@@ -112,6 +113,14 @@ def wins(entry: dict[str, Any]) -> int | None:
                for r, m, t in zip(entry["runs"], md[1], tr[1]))
 
 
+def fewer_contacts(entry: dict[str, Any]) -> int | None:
+    """Runs whose team has at most the classical team's own contacts (teammate + team-obstacle) per episode."""
+    cl = _classical_value(entry, "team_contacts_per_episode")
+    if cl is None:
+        return None
+    return sum(r["team_contacts_per_episode"] <= c for r, c in zip(entry["runs"], cl[1]))
+
+
 def markdown(doc: dict[str, Any]) -> str:
     """The headline table (a row per evader kind) and the per-run table, ready to paste."""
     n = len(doc["sources"])
@@ -122,7 +131,8 @@ def markdown(doc: dict[str, Any]) -> str:
     head = ["evaders"]
     for _, name in HEADLINE:
         head += [f"{name} learned", "classical"]
-    head.append(f"learned beats classical (runs of {n})")
+    head += [f"learned as close and tracking as often (runs of {n})",
+             f"learned team contacts <= classical (runs of {n})"]
     lines += ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for kind, e in doc["evaders"].items():
         row = ["suite mean" if kind == SUITE_MEAN else kind]
@@ -131,8 +141,8 @@ def markdown(doc: dict[str, Any]) -> str:
             row.append(f"{fmt.format(e['mean'][key])} [{fmt.format(e['min'][key])}-{fmt.format(e['max'][key])}]")
             cl = _classical_value(e, key)
             row.append("" if cl is None else fmt.format(cl[0]))
-        w = wins(e)
-        row.append("" if w is None else f"{w}/{n}")
+        for count in (wins(e), fewer_contacts(e)):
+            row.append("" if count is None else f"{count}/{n}")
         lines.append("| " + " | ".join(row) + " |")
     lines += ["", "Per run: min dist [m] / tracking rate", ""]
     kinds = list(doc["evaders"])
