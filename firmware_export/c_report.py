@@ -95,3 +95,35 @@ def format_report(export: CExport, r: CostReport) -> str:
         "  by class (instructions, cycles): " + "; ".join(f"{k} {n}/{c}" for k, (n, c) in run.by_class.items()),
     ]
     return "\n".join(lines)
+
+
+def object_report(obj: Path, model_path: str | Path, n_obs: int = 20, seed: int = 0) -> str:
+    """Run a policy object compiled elsewhere (the ``src/policy.o`` of a firmware build of the app) in the
+    emulator: its actions against onnxruntime on ``n_obs`` parity observations, and one inference's cost."""
+    from firmware_export.mlp_graph import read_actor
+
+    model = read_actor(model_path)
+    obs = parity_observations(model.spec, model.role, max(n_obs, 2), seed)
+    with tempfile.TemporaryDirectory(prefix="swarm_fwobj_") as tmp:
+        b = m4_emu.build_from_object(Path(obj), Path(tmp))
+        acts = np.array([m4_emu.run(b, o, act_dim=model.act_dim, count=False).act for o in obs])
+        run = m4_emu.run(b, obs[-1], act_dim=model.act_dim)
+    diff = float(np.abs(acts - onnx_actions(model_path, obs)).max())
+    return (f"{obj} (as the firmware linked it) in the emulator: max |diff| vs onnxruntime {diff:.3g} on {len(obs)} "
+            f"observations; {run.instructions} instructions, {run.total_cycles} cycles with flash wait states = "
+            f"{m4_emu.micros(run.total_cycles):.1f} us at 168 MHz")
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(description="emulate a policy object built inside the Crazyflie firmware")
+    p.add_argument("--object", required=True, type=Path, help="APP/src/policy.o of a firmware build of the app")
+    p.add_argument("--model", required=True, type=Path, help="the ONNX actor it was exported from")
+    args = p.parse_args(argv)
+    print(object_report(args.object, args.model))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -52,3 +52,9 @@ if ! nice -n 10 make -C "$app" CRAZYFLIE_BASE="$base" -j"${JOBS:-2}" >"$log" 2>&
 fi
 grep -E "^(Flash|RAM|CCM) +\|" "$log"
 (cd "$here" && "$py" -m firmware_export.fw_budget "$app/build/cf2.elf")
+# the policy object exactly as the firmware compiled and linked it, run in the emulator
+model=$(sed -n '1s/.*`swarm-export c` from \(.*\) -- do not edit.*/\1/p' "$app/src/policy.h")
+if [ -n "$model" ] && [ -f "$here/$model" -o -f "$model" ]; then
+    (cd "$here" && "$py" -m firmware_export.c_report --object "$app/src/policy.o" --model "$model") \
+        || echo "note: could not emulate $app/src/policy.o (needs unicorn and onnxruntime)"
+fi

@@ -139,7 +139,13 @@ class M4Build:
 def build(c_file: Path, work: Path) -> M4Build:
     """Compile and link ``c_file`` (a generated policy.c beside its policy.h) for the Cortex-M4."""
     work.mkdir(parents=True, exist_ok=True)
-    obj = compile_m4_object(c_file, work / "policy_m4.o", include=(c_file.parent,))
+    return build_from_object(compile_m4_object(c_file, work / "policy_m4.o", include=(c_file.parent,)), work)
+
+
+def build_from_object(obj: Path, work: Path) -> M4Build:
+    """Link a compiled policy object for emulation: ``build``'s, or the ``src/policy.o`` a firmware build of the
+    Crazyflie app made (to run exactly what the firmware links)."""
+    work.mkdir(parents=True, exist_ok=True)
     elf = link_m4_elf([obj], work / "policy_m4.elf")
     tool = ARM_GCC.replace("gcc", "")
     flash = work / "policy_m4_flash.bin"
