@@ -517,6 +517,22 @@ def test_cortex_m4_int8_inference_within_100_us_with_smlad(work, trained_pursuer
     assert 3 * ex.sources.weight_bytes < flt_ex.sources.weight_bytes  # 8.7 KB against 28.9 KB of tables
 
 
+@needs_arm
+def test_a_policy_object_compiled_elsewhere_runs_in_the_emulator(work, pursuer_onnx):
+    """What check_in_firmware.sh does with the firmware's own policy.o (here: one compiled with the firmware's
+    -Os before the app's -O2, as its Kbuild line orders them)."""
+    _needs_unicorn()
+    from firmware_export.c_report import object_report
+
+    ex = export_c(pursuer_onnx, work / "fwobj")
+    obj = compile_m4_object(ex.source, work / "fwobj" / "policy.o", include=(ex.source.parent,),
+                            opt=("-Os", "-O2", "-ffast-math", "-fno-math-errno"))
+    text = object_report(obj, pursuer_onnx, n_obs=4)
+    diff = float(re.search(r"max \|diff\| vs onnxruntime (\S+) on 4 observations", text).group(1))
+    us = float(re.search(r"= (\S+) us at 168 MHz", text).group(1))
+    assert diff <= 1e-5 and 100.0 < us <= 200.0
+
+
 # --------------------------------------------------------------------------------------------------
 # Crazyflie app
 
