@@ -143,14 +143,16 @@ class MetricsAccumulator:
     def _mark_coverage(self, pos: np.ndarray) -> np.ndarray:
         """Marks cells within sensing range of ``pos`` [B, M, 2] as visited; returns instant coverage [B].
 
-        In each raster row the cells whose centres lie in an agent's disc form one run ``[x0, x1]``; runs are
-        painted with a difference array and a cumulative sum (the same cells as testing every centre, ~5x
-        faster than a square stencil)."""
+        In each raster row the cells whose centres lie in an agent's disc form one run ``[x0, x1]``; each
+        agent's runs are cut out of the square window of rows and columns around it and set by index (the same
+        cells as testing every centre; ~2x faster than painting the runs with a difference array and a
+        cumulative sum over the whole raster, which spent its time on the raster's full width)."""
         b = pos.shape[0]
         hw = self.spec.arena.half_width
         r = self.spec.sensing.sensing_range
         c, res = self.cells, self.res
         iy = np.floor((pos[..., 1] + hw) / res).astype(np.int64)
+        ix = np.floor((pos[..., 0] + hw) / res).astype(np.int64)
         rows = iy[..., None] + self.row_off  # [B, M, R]
         dy = -hw + (rows + 0.5) * res - pos[..., 1, None]
         h2 = r * r - dy * dy
@@ -159,10 +161,13 @@ class MetricsAccumulator:
         x0 = np.maximum(np.ceil((px - h + hw) / res - 0.5), 0).astype(np.int64)
         x1 = np.minimum(np.floor((px + h + hw) / res - 0.5), c - 1).astype(np.int64)
         ok = (h2 >= 0) & (rows >= 0) & (rows < c) & (x0 <= x1)
-        base = (np.arange(b)[:, None, None] * c + rows) * (c + 1)
-        n = b * c * (c + 1)
-        diff = np.bincount((base + x0)[ok], minlength=n) - np.bincount((base + x1 + 1)[ok], minlength=n)
-        now = np.cumsum(diff.reshape(b, c, c + 1)[..., :c], axis=-1) > 0
+        # a run spans at most 2 r / res + 1 cells around the agent's own column: the window row_off covers it
+        cols = (ix[..., None] + self.row_off)[..., None, :]  # [B, M, 1, W]
+        inside = ok[..., None] & (cols >= x0[..., None]) & (cols <= x1[..., None])  # [B, M, R, W]
+        idx = ((np.arange(b)[:, None, None, None] * c + rows[..., None]) * c + cols)[inside]
+        now = np.zeros(b * c * c, dtype=bool)
+        now[idx] = True
+        now = now.reshape(b, c, c)
         now &= self.free[:b]
         self.visited[:b] |= now
         return now.reshape(b, -1).sum(-1) / self.free_count[:b]
