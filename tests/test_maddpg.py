@@ -471,3 +471,21 @@ def test_obs_scaled_actors_export_to_onnx_that_acts_as_the_learner(tmp_path):
     obs = _batch(cfg, k=64, seed=3)[0]
     np.testing.assert_allclose(OnnxActorsPolicy(str(tmp_path / "models")).act(obs.numpy()), agent.act(obs).numpy(),
                                atol=1e-5)
+
+
+def test_the_trainer_runs_every_option_with_opponent_snapshots_and_resumes(tmp_path):
+    from training.train import Trainer
+    cfg = _cfg(share_params=True, critic="global", algorithm="matd3", obs_scaling=True, opponent_mix=0.5,
+               opponent_snapshot_every=10, steps=30, n_envs=2, warmup_steps=10, log_every=10, checkpoint_every=1000,
+               buffer_size=200)
+    tr = Trainer(cfg, tmp_path / "run")
+    tr.run(progress=False)
+    assert tr.agent.updates > 0 and tr.mixer.snapshots
+    obs = _batch(cfg, k=8)[0]
+    with torch.no_grad():  # a snapshot acts as the learner's exported actors did when it was taken
+        assert tr.mixer.snapshots[-1](obs.transpose(0, 1)).shape == (cfg.spec.n_agents, 8, 2)
+    longer = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=40))
+    again = Trainer(longer, tmp_path / "run", resume=True)
+    assert again.agent.updates == tr.agent.updates and len(again.mixer.snapshots) == len(tr.mixer.snapshots)
+    again.run(progress=False)
+    assert again.agent.updates > tr.agent.updates

@@ -392,7 +392,10 @@ class MADDPG:
 
     def frozen_actors(self) -> BatchedMLP:
         """Every agent's actor as one frozen module on raw observations ``[N, B, D] -> [N, B, 2]`` (one row per
-        agent whatever ``share_params``, the scaling folded in): what an opponent snapshot keeps."""
+        agent whatever ``share_params``, the scaling folded in): what an opponent snapshot keeps. Without
+        either option that is ``actors`` itself (the caller copies it)."""
+        if not self.cfg.share_params and self._in_scale is None:
+            return self.actors
         return BatchedMLP.from_actors(self.to_actors(), self.obs_dim).to(self.device).requires_grad_(False)
 
     def state_dict(self) -> dict[str, Any]:

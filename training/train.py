@@ -213,7 +213,7 @@ class Trainer:
         self.np_rng.bit_generator.state = st["np_rng"]
         self.env.world.rng.bit_generator.state = st["world_rng"]
         if "opponents" in st:
-            self.mixer.load_state_dict(st["opponents"], self.agent.actors)
+            self.mixer.load_state_dict(st["opponents"], self.agent.frozen_actors())
             self.mixer.rng.bit_generator.state = st["opponent_rng"]
         bpath = ckpt_dir / "buffer.pt"
         if bpath.is_file():
@@ -336,7 +336,8 @@ class Trainer:
                 pending = (obs, actions, rew, store_next, given, done_ids)
                 obs = next_obs
                 self.env_step += 1
-                self.mixer.maybe_snapshot(self.env_step, self.agent.actors)
+                if self.env_step % tc.opponent_snapshot_every == 0:  # one actor row per agent, on raw obs
+                    self.mixer.maybe_snapshot(self.env_step, self.agent.frozen_actors())
                 self._record(win, rew, done, info)
                 if (self.env_step >= tc.warmup_steps and len(self.buffer) >= tc.batch_size
                         and self.env_step % tc.update_every == 0):
