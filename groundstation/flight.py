@@ -14,8 +14,8 @@ Setpoints. The per-drone runtimes hand in horizontal velocity commands (``set_co
 them into setpoints at ``setpoint_rate``. A setpoint is computed when a drone's telemetry arrives and its
 setpoint is due, from the measurement that just arrived (this keeps measurement-to-setpoint latency to the
 processing time): horizontal command, through the separation filter (``separation.JointFilter``: every
-drone's latest tracker position and velocity, solved jointly at most once per setpoint period and cached for
-the other drones' threads), + an altitude-hold term, through the geofence (``safety.Geofence``), then
+drone's latest tracker position and velocity, solved jointly once per setpoint period on its own thread; the
+receive threads read its cache), + an altitude-hold term, through the geofence (``safety.Geofence``), then
 ``link.send_velocity``. Nothing else sends setpoints. A holding drone's zero velocity needs no filter (zero is
 the filter's own brake); to the filter it, and every drone not flying the mission, is an obstacle.
 
@@ -298,6 +298,8 @@ class FlightSession:
             self._callbacks[d.id] = cb
         self._supervisor = threading.Thread(target=self._supervise, name="FlightSupervisor", daemon=True)
         self._supervisor.start()
+        if self.separation is not None:
+            self.separation.start()
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -312,6 +314,8 @@ class FlightSession:
             self._stop.set()
             if self._supervisor is not None:
                 self._supervisor.join(timeout=2.0)
+            if self.separation is not None:
+                self.separation.stop()
             for d in self.drones.values():
                 cb = self._callbacks.pop(d.id, None)
                 if cb is not None:

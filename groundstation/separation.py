@@ -379,11 +379,17 @@ class Snapshot:
     """[N, 2] commands in flight [m/s]"""
 
 
+STALE_PERIODS = 3
+"""With the solver thread running, a cache older than this many intervals is solved again on the asking
+thread (the solver thread stalled or died)."""
+
+
 class JointFilter:
-    """The joint solve shared by every link's receive thread: whichever drone's setpoint falls due first after
-    ``interval`` s re-solves for all drones from ``gather()``; the others read the cached result. One QP per
-    control period instead of one per setpoint keeps the per-setpoint cost to a lookup, and a joint solution
-    gives each drone of a pair its share of the gap. The age of the cache is part of ``limits.latency``."""
+    """The joint solve shared by every link's receive thread. Started (``start``), a solver thread re-solves for
+    all drones from ``gather()`` every ``interval`` s and the receive threads only read the cached result: one
+    QP per control period, none on the setpoint path. Not started (tests), or when the cache is older than
+    ``STALE_PERIODS`` intervals, the asking thread solves. A drone missing from a running filter's cache (it
+    just began to fly) brakes until the next solve. The cache's age is part of ``limits.latency``."""
 
     def __init__(self, limits: Limits, gather: Callable[[], "Snapshot"], interval: float,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -392,25 +398,65 @@ class JointFilter:
         self._gather = gather
         self._clock = clock
         self._lock = threading.Lock()
+        """Guards the cache and the counters (held for lookups only)."""
+        self._solve_lock = threading.Lock()
+        """One solve at a time."""
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
         self._t = -math.inf
-        self._cache: dict[str, tuple[np.ndarray, bool]] = {}
+        self._cache: dict[str, tuple[np.ndarray, bool, bool]] = {}
         self.solves = 0
         self.methods: dict[str, int] = {}
         self.braked = 0
         """Setpoints handed out as a brake because nothing safer was possible."""
         self.unplaced = 0
-        """Of those, setpoints of drones the filter could not place (no fresh position in ``gather()``)."""
+        """Of those, setpoints of drones not in the cache (no fresh position, or not flying, at the solve)."""
         self.changed = 0
         """Setpoints the filter changed (braked included)."""
         self.setpoints = 0
+        self.solve_s: list[float] = []
+        """Wall time of every joint solve [s] (snapshot included)."""
+        # The solver's first use imports OSQP and scipy.sparse (seconds on a busy machine): here, before any
+        # flight, and not at the first setpoint.
+        filter_velocities(np.array([[0.0, 0.0], [0.5, 0.0]]), np.zeros((2, 2)), np.array([[1.0, 0.0], [-1.0, 0.0]]),
+                          np.ones(2, dtype=bool), limits)
+
+    def start(self) -> "JointFilter":
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="SeparationFilter", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._thread = None
+
+    def _run(self) -> None:
+        next_t = self._clock()
+        while not self._stop.is_set():
+            try:
+                self._solve(self._clock())
+            except Exception:  # the receive threads solve themselves once the cache is stale
+                log.exception("separation solve failed")
+            next_t += self.interval
+            delay = next_t - self._clock()
+            if delay < 0:
+                next_t, delay = self._clock(), 0.0
+            self._stop.wait(delay)
 
     def command(self, drone_id: str, now: float | None = None) -> np.ndarray:
         """Filtered horizontal command [m/s] of ``drone_id``; zero (a brake) when the drone is not in the
         filter's picture (not controlled, or its state is unknown)."""
         now = self._clock() if now is None else now
+        running = self._thread is not None
         with self._lock:
-            if now - self._t >= self.interval or drone_id not in self._cache:
-                self._solve(now)
+            age = now - self._t
+            known = drone_id in self._cache
+        if age >= (STALE_PERIODS if running else 1) * self.interval or not (known or running):
+            self._solve(now)
+        with self._lock:
             entry = self._cache.get(drone_id)
             v, braked, changed = entry if entry is not None else (np.zeros(2), True, True)
             self.setpoints += 1
@@ -420,22 +466,31 @@ class JointFilter:
             return v.copy()
 
     def _solve(self, now: float) -> None:
-        snap: Snapshot = self._gather()
-        self._t = now
-        self.solves += 1
-        if not snap.ids:
-            self._cache = {}
-            return
-        res = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled, self.limits,
-                                snap.previous)
-        self.methods[res.method] = self.methods.get(res.method, 0) + 1
-        want = _cap_speed(np.asarray(snap.desired, dtype=float).reshape(-1, 2), self.limits.max_speed)
-        changed = ~np.all(np.abs(res.velocity - want) <= 1e-9, axis=1)
-        self._cache = {d: (res.velocity[k], bool(res.braked[k]), bool(changed[k])) for k, d in enumerate(snap.ids)
-                       if snap.controlled[k]}
+        with self._solve_lock:
+            t0 = time.perf_counter()
+            snap: Snapshot = self._gather()
+            cache: dict[str, tuple[np.ndarray, bool, bool]] = {}
+            method = "none"
+            if snap.ids:
+                res = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled,
+                                        self.limits, snap.previous)
+                method = res.method
+                want = _cap_speed(np.asarray(snap.desired, dtype=float).reshape(-1, 2), self.limits.max_speed)
+                changed = ~np.all(np.abs(res.velocity - want) <= 1e-9, axis=1)
+                cache = {d: (res.velocity[k], bool(res.braked[k]), bool(changed[k]))
+                         for k, d in enumerate(snap.ids) if snap.controlled[k]}
+            with self._lock:
+                self._cache, self._t = cache, now
+                self.solves += 1
+                self.methods[method] = self.methods.get(method, 0) + 1
+                if len(self.solve_s) < 1_000_000:
+                    self.solve_s.append(time.perf_counter() - t0)
 
     def stats(self) -> dict[str, Any]:
         with self._lock:
-            return {"solves": self.solves, "methods": dict(self.methods), "setpoints": self.setpoints,
+            ms = np.array(self.solve_s) * 1e3
+            timing = {"solve_ms_p50": float(np.percentile(ms, 50)), "solve_ms_p99": float(np.percentile(ms, 99))} \
+                if ms.size else {}
+            return {"solves": self.solves, "methods": dict(self.methods), "setpoints": self.setpoints, **timing,
                     "changed_setpoints": self.changed, "braked_setpoints": self.braked,
                     "unplaced_setpoints": self.unplaced}

@@ -235,6 +235,31 @@ def test_joint_filter_solves_once_per_interval():
     assert jf.stats()["solves"] == 3 and state["calls"] == 3  # the interval passed
 
 
+def test_started_filter_solves_on_its_own_thread():
+    import threading
+
+    from flight_fixtures import wait_until
+    callers = []
+
+    def gather():
+        callers.append(threading.current_thread().name)
+        return Snapshot(["a", "b"], np.array([[0.0, 0.0], [1.0, 0.0]]), np.zeros((2, 2)),
+                        np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([True, True]), np.zeros((2, 2)))
+
+    jf = JointFilter(LIM, gather, interval=0.01).start()
+    try:
+        assert wait_until(lambda: jf.stats()["solves"] >= 3, timeout=10.0)
+        for _ in range(50):
+            assert 0 < jf.command("a")[0] < 1.0
+            assert jf.command("new").tolist() == [0.0, 0.0]  # not in the cache: brakes, no solve of its own
+    finally:
+        jf.stop()
+    # the receive threads (here the test's) solve only when the cache is STALE_PERIODS intervals old
+    assert callers.count("SeparationFilter") >= 3
+    assert all(c == "SeparationFilter" for c in callers[:3])
+    assert jf.stats()["unplaced_setpoints"] == 50 and jf.stats()["solve_ms_p99"] > 0
+
+
 def test_config():
     assert SeparationConfig().min_distance == pytest.approx(0.35)
     assert SeparationConfig().capture_distance == SwarmSpec().sensing.sensing_range
