@@ -53,7 +53,7 @@ class QuadParams:
     lps_outlier_rate: float = 0.1
     """Outliers (a multipath or non-line-of-sight UWB range that passes the estimator's outlier filter) per
     second and drone [1/s]: each moves the estimate by a random offset that then fades."""
-    lps_outlier_m: float = 0.08
+    lps_outlier_m: float = 0.05
     """Mean size of an outlier's offset [m] (exponentially distributed)."""
     lps_dropout_rate: float = 0.02
     """Positioning dropouts (no measurement reaches the estimator) per second and drone [1/s]. Meanwhile the

@@ -60,6 +60,9 @@ def free_base_port(n: int, low: int = 20000, high: int = 40000, seed: int | None
     raise SimError(f"no {n} consecutive free UDP ports in [{low}, {high}): free some or widen the range")
 
 
+SIM_STALL_S = 0.1
+"""A simulator loop iteration later than this [s] (beyond its select timeout) counts as a stall of the
+simulator's own process; the simulated time skips it."""
 CONTACT_EVERY = 2
 """Contacts are looked for every this many physics steps (10 ms at the default 5 ms step: two drones closing
 at 3 m/s move 3 cm in that time, a fifth of two radii)."""
@@ -111,7 +114,10 @@ class SimSwarm:
             cols = max(1, int(np.ceil(np.sqrt(n))))
             start_positions = np.array([[(i % cols) * spacing, (i // cols) * spacing, 0.0] for i in range(n)])
         self.model = QuadBatch(n, params, start_positions, seed)
-        now = time.monotonic()
+        self._paused = 0.0
+        self.stalls = 0
+        """Times the simulator itself did not run for longer than ``SIM_STALL_S`` (its world paused)."""
+        now = self.clock()
         self.drones = [SimCrazyflie(i, self.model, now, latency_probe) for i in range(n)]
         self._alive = [True] * n
         self._clients: list[tuple[str, int] | None] = [None] * n
@@ -188,7 +194,7 @@ class SimSwarm:
     def reboot(self, i: int) -> None:
         """Power-cycle drone ``i`` (the only way out of the locked state)."""
         with self._lock:
-            self.drones[i].reboot(time.monotonic())
+            self.drones[i].reboot(self.clock())
 
     def truth(self, i: int) -> DroneTruth:
         with self._lock:
@@ -230,27 +236,46 @@ class SimSwarm:
 
     @property
     def contact_events(self) -> list[tuple[float, int, int]]:
-        """Every contact as (time [s, time.monotonic()], i, j) with i < j."""
+        """Every contact as (time [s, ``clock()``: time.monotonic() less the simulator's own stalls], i, j),
+        i < j."""
         with self._lock:
             return list(self._contact_events)
 
     # ---- the loop ----------------------------------------------------------------------------------
 
+    def clock(self) -> float:
+        """The simulated drones' time [s]: ``time.monotonic()`` less the time this simulator did not run."""
+        return time.monotonic() - self._paused
+
+    def _note_stall(self, real_gap: float) -> None:
+        """A loop iteration that comes later than ``SIM_STALL_S``: the simulator's process was not scheduled.
+        Real drones do not pause with it, but the best model of that gap is a world that paused: otherwise
+        the firmware's watchdogs would count time in which neither the drones nor (in-process) the ground
+        station ran, and lock drones that a real ground station had kept alive."""
+        if real_gap > SIM_STALL_S:
+            self._paused += real_gap - SIM_STALL_S
+            self.stalls += 1
+            logger.debug("simulator did not run for %.0f ms: the simulated world paused", real_gap * 1e3)
+
     def _run(self) -> None:
         dt = self.physics_dt
-        next_step = time.monotonic()
+        next_step = self.clock()
+        last = time.monotonic()
         while not self._stop.is_set():
-            now = time.monotonic()
+            now = self.clock()
             next_log = min(d.next_log_due() for d in self.drones)
             timeout = min(max(min(next_step, next_log) - now, 0.0), 0.05)
             try:
                 events = self._selector.select(timeout)
             except (OSError, ValueError):
                 break  # sockets closed under us by stop()
+            real = time.monotonic()
+            self._note_stall(real - last - timeout)
+            last = real
             for key, _ in events:
                 self._drain(key.fileobj, key.data)
             with self._lock:
-                now = time.monotonic()
+                now = self.clock()
                 steps = 0
                 while next_step <= now and steps < 10:
                     self._physics_step(next_step, dt)
@@ -274,7 +299,7 @@ class SimSwarm:
                 if not self._alive[i]:
                     continue
                 self._clients[i] = addr
-                replies = self.drones[i].handle(data, time.monotonic())
+                replies = self.drones[i].handle(data, self.clock())
                 self._send(i, replies)
 
     def _send(self, i: int, datagrams: list[bytes]) -> None:
@@ -298,7 +323,7 @@ class SimSwarm:
                 continue
             for datagram, ts in packets:
                 self._send(i, [datagram])
-                drone.note_log_sent(ts, time.monotonic())
+                drone.note_log_sent(ts, self.clock())
 
     def _physics_step(self, t: float, dt: float) -> None:
         n = self.n
