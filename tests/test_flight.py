@@ -211,14 +211,17 @@ def test_fleet_commands_over_udp(tmp_path, capsys):
         assert "mission_start" in out and "'cf0': 'landed'" in out and "geofence violations 0" in out
         assert all(on_ground(sims.truth(i)) for i in range(3))
         assert (tmp_path / "f.jsonl").read_text().count('"drone":"cf1"') > 5
-        # a drone left in the air by a crashed ground station is landed by `swarm-gs land`
+        # a drone left in the air by a crashed ground station comes down by itself: the link armed the
+        # firmware's emergency-stop watchdog, which stops the motors 1 s after its packets stop. That watchdog
+        # stays armed until a reboot, so every drone locks after a flight: power-cycle before flying again.
+        sims.reboot(0)
         links = open_sim_links(sims.uris[:1])
         links[0].takeoff(0.5, 1.0)
         assert wait_until(lambda: sims.truth(0).position[2] > 0.4, 3.0)
         links[0].close()
-        assert cli.main(["land", "--fleet", str(fleet)]) == 0
-        assert "cf0: landed" in capsys.readouterr().out
-        assert on_ground(sims.truth(0))
+        assert wait_until(lambda: sims.is_locked(0) and on_ground(sims.truth(0)), 3.0)
+        assert cli.main(["land", "--fleet", str(fleet)]) == 0  # nothing left to land
+        assert "cf0: locked" in capsys.readouterr().out
 
 
 # ---- separation --------------------------------------------------------------------------------
