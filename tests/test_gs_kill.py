@@ -8,6 +8,7 @@ It prints each phase as it starts; the kill moment is then chosen by an event in
 climbing past a random height, a random number of packets received, a drone descending past a random
 height), so the test never sleeps for a fixed time. What brings the drones down is the firmware's own
 emergency-stop watchdog that ``CflibLink`` arms and feeds: nothing in the killed process runs any more.
+A frozen ground station (SIGSTOP) and an unplugged radio (the simulator stops hearing it) end the same way.
 """
 from __future__ import annotations
 
@@ -99,7 +100,7 @@ class _Run:
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      env=dict(os.environ, PYTHONUNBUFFERED="1"))
 
-    def kill_at(self, phase: str, kind: str, param) -> None:
+    def kill_at(self, phase: str, kind: str, param, how: str = "killed") -> None:
         sims = self.sims
         _read_until(self.proc, phase, timeout=90.0)
         if kind == "packets":
@@ -108,12 +109,17 @@ class _Run:
         else:
             assert wait_until(lambda: _trigger(sims, kind, param), 10.0), f"{kind} {param} never happened"
         self.airborne = [i for i in range(N) if sims.truth(i).position[2] > 0.02]
-        self.proc.send_signal(signal.SIGKILL)
+        if how == "killed":
+            self.proc.send_signal(signal.SIGKILL)
+        elif how == "frozen":
+            self.proc.send_signal(signal.SIGSTOP)  # every thread stops, the process stays
+        else:  # the radio unplugged: nothing reaches the drones any more, the ground station runs on
+            for i in range(N):
+                sims.kill_link(i)
         self.t_kill = time.monotonic()
 
     def outcome(self) -> dict:
         sims = self.sims
-        self.proc.wait(timeout=10.0)
         armed = [i for i in range(N) if sims.truth(i).watchdog_armed]
 
         def safe() -> bool:
@@ -125,6 +131,7 @@ class _Run:
 
     def close(self) -> None:
         if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)
             self.proc.kill()
             self.proc.wait(timeout=10.0)
         self.sims.stop()
@@ -160,3 +167,17 @@ def test_a_killed_ground_station_leaves_every_drone_down_and_locked_within_3_s(t
             run.close()
     # the moments covered drones in the air, during takeoff as well as after it
     assert outcomes[1][1] > 0 and outcomes[2][1] == N and outcomes[3][1] == N, outcomes
+
+
+@pytest.mark.parametrize("how,phase,kind,param", [("frozen", "takeoff", "climbing past", 0.1),
+                                                  ("unplugged", "landing", "descending past", 0.35)])
+def test_a_frozen_or_unplugged_ground_station_leaves_every_drone_down_and_locked(tmp_path, how, phase, kind,
+                                                                                  param):
+    run = _Run(int.from_bytes(os.urandom(4), "little") % 1000, tmp_path)
+    try:
+        run.kill_at(phase, kind, param, how=how)
+        out = run.outcome()
+    finally:
+        run.close()
+    assert out["safe"] and out["elapsed"] <= DOWN_WITHIN_S, out
+    assert out["airborne"] and set(out["airborne"]) <= set(out["armed"])
