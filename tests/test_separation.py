@@ -221,7 +221,8 @@ def test_joint_filter_solves_once_per_interval():
     def gather():
         state["calls"] += 1
         return Snapshot(["a", "b", "c"], np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 5.0]]), np.zeros((3, 2)),
-                        np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 0.0]]), np.array([True, True, False]), np.zeros((3, 2)))
+                        np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 0.0]]), np.array([True, True, False]),
+                        np.zeros((3, 2)))
 
     jf = JointFilter(LIM, gather, interval=0.05)
     a = jf.command("a", now=10.0)
