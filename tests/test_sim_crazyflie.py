@@ -76,6 +76,14 @@ def test_link_echo_source_version_and_scan_probe(sims):
     assert _raw(port, b"\xff")[0] == 0xF3  # the UDP driver's scan probe gets an answer
 
 
+def test_supervisor_answers_single_bit_queries_like_crtp_supervisor_c(sims):
+    port, h = sims.base_port, crtp.header(crtp.Port.SUPERVISOR, 0)
+    assert _raw(port, bytes((h, 0x02))) == bytes((h, 0x82, 1))  # CMD_IS_ARMED: auto-armed
+    assert _raw(port, bytes((h, 0x07))) == bytes((h, 0x87, 0))  # CMD_IS_LOCKED
+    info = struct.unpack("<H", _raw(port, bytes((h, 0x0C)))[2:])[0]
+    assert all(_raw(port, bytes((h, c)))[2] == (info >> (c - 1)) & 1 for c in range(1, 12))
+
+
 def test_malformed_packets_are_dropped_and_the_server_keeps_answering(sims):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.connect(("127.0.0.1", sims.base_port))

@@ -16,7 +16,8 @@ Implemented services (port: what):
 * legacy commander (3): roll/pitch/yawrate/thrust, where thrust 0 (what cflib sends on close) is a stop;
 * high-level commander (8): group mask, takeoff, land (v1 and v2), go_to (v1 and v2), stop;
 * localization (6): external position (ch 0); emergency stop and its watchdog (ch 1);
-* supervisor (9): state bitfield (ch 0), arm, crash recovery, emergency stop and its watchdog (ch 1).
+* supervisor (9): state bitfield and single bits (ch 0), arm, crash recovery, emergency stop and its watchdog
+  (ch 1) (``crtp_supervisor.c``).
 """
 from __future__ import annotations
 
@@ -403,8 +404,10 @@ class SimCrazyflie:
         cmd, fw = data[0], self.firmware
         if channel == 0:
             info = fw.supervisor_info()
-            if cmd == 0x0C:  # the whole state bitfield (the single-bit queries are not simulated)
+            if cmd == 0x0C:  # the whole state bitfield
                 return [crtp.packet(Port.SUPERVISOR, 0, struct.pack("<BH", 0x80 | cmd, info))]
+            if 0x01 <= cmd <= 0x0B:  # one bit, CMD_CAN_BE_ARMED (bit 0) ... CMD_HL_CONTROL_DISABLED (bit 10)
+                return [crtp.packet(Port.SUPERVISOR, 0, bytes((0x80 | cmd, (info >> (cmd - 1)) & 1)))]
             return []
         if channel == 1:
             if cmd == 0x01:
