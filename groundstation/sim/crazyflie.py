@@ -461,8 +461,10 @@ class SimCrazyflie:
             self.latency_samples.append(now - t_sent)
 
     def reboot(self, now: float) -> None:
-        """Power cycle: a fresh firmware (clears a lock) where the drone now lies; forgets log blocks."""
+        """Power cycle: a fresh firmware (clears a lock and the emergency-stop watchdog) and a fresh estimator
+        where the drone now lies; forgets log blocks."""
         self.firmware = Firmware(self.model.params, now)
+        self.model.reset_estimate_error(self.index)
         self.boot_time = now
         self.blocks.clear()
         self.params = {v.full_name: v.default for v in PARAM_TOC}
