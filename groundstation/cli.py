@@ -35,6 +35,10 @@ def _add_sim(subparsers: argparse._SubParsersAction) -> None:
                         "listening on --mavlink-port+i; connect with mavlink:udpin:HOST:PORT (default 0)")
     p.add_argument("--mavlink-port", type=int, default=14550,
                    help="UDP port the ground station listens on for vehicle 1 (default 14550)")
+    p.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
+                   help="what the MAVLink vehicles behave as: 'ardupilot' (ArduCopter: GUIDED, LAND, RTL, LOITER "
+                        "custom modes) or 'px4' (PX4's mode encoding, OFFBOARD only after a setpoint stream) "
+                        "(default ardupilot)")
     p.set_defaults(func=_run_sim)
 
 
@@ -50,11 +54,12 @@ def _run_sim(args: argparse.Namespace) -> int:
             sims = SimSwarm(args.drones, base_port=args.base_port, host=args.host, seed=args.seed,
                             spacing=args.spacing).start()
         if args.mavlink:
+            from groundstation.mavlink_autopilot import Autopilot
             from groundstation.sim.mavlink_vehicle import MavlinkVehicle, VehicleConfig
             for i in range(args.mavlink):
                 start = (i * args.spacing, -args.spacing, 0.0)
-                vehicles.append(MavlinkVehicle(f"udpout:{args.host}:{args.mavlink_port + i}",
-                                               VehicleConfig(system_id=i + 1), start=start,
+                config = VehicleConfig(system_id=i + 1, autopilot=Autopilot(args.autopilot))
+                vehicles.append(MavlinkVehicle(f"udpout:{args.host}:{args.mavlink_port + i}", config, start=start,
                                                seed=args.seed + i).start())
     except (SimError, OSError) as exc:
         print(f"swarm-gs sim: {exc}", file=sys.stderr)
