@@ -89,6 +89,17 @@ def test_shipped_configs_load():
     for p in sorted(Path(__file__).resolve().parent.parent.glob("configs/*.toml")):
         if p.name in ("lps_anchors.toml", "fence.toml") or p.name.startswith(("fleet", "sweep")):
             continue  # ground-station and sweep files have loaders (and tests) of their own
+        if "flight" in load_toml(p) and "train" not in load_toml(p):
+            _load_flight_config(p)  # a `swarm-gs demo --flight-config` file
+            continue
         ExperimentConfig.from_toml(p)
         seen += 1
-    assert seen >= 2  # multi_target and role_based at least
+    assert seen >= 5  # role_based, multi_target, their paper_ twins and paper_flight at least
+
+
+def _load_flight_config(path):
+    """What ``swarm-gs demo --flight-config`` reads: the [flight] and [separation] tables."""
+    from groundstation.flight import FlightConfig
+    from groundstation.separation import SeparationConfig
+    FlightConfig.from_toml(path)
+    SeparationConfig.from_dict(load_toml(path).get("separation", {}))
