@@ -50,6 +50,7 @@ from groundstation.safety import FenceConfig, KeepOut, in_safe_set
 from groundstation.separation import SeparationConfig
 from groundstation.sim.swarm import SimSwarm, free_base_port
 from runtime.metrics import MetricsAccumulator
+from runtime.paper import FLIGHT_TEAM, PAPER
 from runtime.policy import load_models, read_manifest
 from runtime.spec import SwarmSpec, load_toml
 
@@ -465,6 +466,9 @@ def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: Episod
     res: dict[str, Any] = {k: summary.get(k) for k in ("mean_min_dist", "mean_avg_dist", "mean_max_dist",
                                                        "tracking_rate", "coverage", "coverage_instant",
                                                        "collisions_per_episode", "captures_per_episode")}
+    t = spec.team
+    if (t.n_pursuers, t.n_scouts, t.n_evaders) == FLIGHT_TEAM:  # the paper's real-drone team: its figure beside
+        res["paper_flight_mean_avg_dist"] = PAPER["paper_flight"]["mean_avg_dist"]
     res.update({
         "episodes": summary.get("episodes", 0),
         "landed": landed,
@@ -562,7 +566,9 @@ def format_summary(res: dict[str, Any]) -> str:
         f"agents: {ag['actions']} actions, {ag['deadline_misses']} deadline misses, {ag['faults']} faults, tick to "
         f"command p50 {f(ag['tick_to_command_p50_ms'], 2)} ms p99 {f(ag['tick_to_command_p99_ms'], 2)} ms",
         f"distance to targets  min {f(res['mean_min_dist'])}  mean {f(res['mean_avg_dist'])}  "
-        f"max {f(res['mean_max_dist'])} m",
+        f"max {f(res['mean_max_dist'])} m"
+        + (f"   (paper's real flight, 2 pursuers + 3 scouts vs 1 evader: mean {res['paper_flight_mean_avg_dist']} m)"
+           if "paper_flight_mean_avg_dist" in res else ""),
         f"tracking rate {f(res['tracking_rate'])}   coverage {f(res['coverage'])}   "
         f"collisions/episode {f(res['collisions_per_episode'], 2)}   captures/episode "
         f"{f(res['captures_per_episode'], 2)} (within {f(res['capture_distance'], 2)} m)",

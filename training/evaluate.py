@@ -19,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from runtime.metrics import METRIC_KEYS, summarize
+from runtime.paper import PAPER  # noqa: F401  (re-exported: the paper's figures, defined once in runtime)
 from training.baselines import Policy
 from training.config import ExperimentConfig
 from training.env import PursuitEnv
@@ -27,14 +28,6 @@ log = logging.getLogger(__name__)
 
 EVAL_SEED_OFFSET = 10 ** 6
 """Added to the evaluation seed; training seeds stay below it."""
-
-PAPER: dict[str, dict[Any, float]] = {
-    "multi_target": {"mean_min_dist": 0.4616, "mean_avg_dist": 2.1048, "mean_max_dist": 3.8639},
-    "role_based": {"mean_min_dist": 0.4745, "mean_avg_dist": 2.2609, "mean_max_dist": 4.1233, "coverage": 0.35},
-    # Table I: mean minimum distance [m] of multi-target MADDPG against the number of pursuers (2 evaders)
-    "table_i": {2: 0.6307, 3: 0.5481, 4: 0.5029, 5: 0.4616, 6: 0.4613},
-}
-"""The paper's figures (Kouzeghar et al., Tables I-III and the coverage figure)."""
 
 _LABELS = {
     "episodes": "episodes",
