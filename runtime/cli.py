@@ -19,6 +19,9 @@ import sys
 import time
 from pathlib import Path
 
+from runtime.cliutil import (ArgumentParser, float_in, EXIT_USAGE, float_list, json_safe, nonneg_float,
+                             nonneg_int, out_file, out_prefix, positive_float, probability, write_json_atomic,
+                             write_text_atomic)
 from runtime.comms import CommConfig
 from runtime.spec import ENGINES, SpecError
 
@@ -34,32 +37,10 @@ _METRIC_LABELS = (("episodes", "episodes"), ("mean_min_dist", "min pursuer-targe
                   ("captures_per_episode", "captures / episode"))
 
 
-def _probability(text: str) -> float:
-    v = float(text)
-    if not 0.0 <= v <= 1.0:
-        raise argparse.ArgumentTypeError(f"a probability in [0, 1], got {text}")
-    return v
-
-
-def _nonneg(text: str) -> float:
-    v = float(text)
-    if not (v >= 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"a finite number >= 0, got {text}")
-    return v
-
-
-def _positive(text: str) -> float:
-    v = float(text)
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"a number > 0, got {text}")
-    return v
-
-
-def _floats(text: str) -> list[float]:
-    try:
-        return [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"a comma-separated list of numbers, got {text!r}") from None
+_probability = probability
+_nonneg = nonneg_float
+_positive = positive_float
+_floats = float_list(nonneg_float, "numbers >= 0", "0,0.2,0.5")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -69,7 +50,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="agents' control rate [Hz] (default: 1 / spec control period; the world steps at that)")
     p.add_argument("--processes", action="store_true",
                    help="each agent in its own process, messages over UDP on loopback (default: threads)")
-    p.add_argument("--bandwidth", type=_positive, default=math.inf, help="each sender's channel rate [bit/s]")
+    p.add_argument("--bandwidth", type=float_in(0.0, low_open=True, allow_inf=True), default=math.inf, help="each sender's channel rate [bit/s]")
     p.add_argument("--comm-range", type=_positive, default=None,
                    help="radio range [m] (default: the spec's comm_range with partial observability, unlimited "
                         "with full)")
@@ -128,20 +109,12 @@ def format_run(res: dict) -> str:
     return "\n".join(lines)
 
 
-def _json_safe(obj):
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    return obj
+_json_safe = json_safe
 
 
 def write_json(path: Path, obj) -> None:
-    """``obj`` as indented JSON at ``path`` (its folder created); NaN -> null, inf -> "inf"."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_json_safe(obj), indent=2) + "\n")
+    """``obj`` as indented JSON at ``path``, atomically (its folder created); NaN -> null, inf -> "inf"."""
+    write_json_atomic(path, obj)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -162,7 +135,7 @@ def add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=_positive, default=30.0, help="seconds of real time")
     p.add_argument("--loss", type=_probability, default=0.0, help="message loss probability")
     p.add_argument("--latency", type=_nonneg, default=0.0, help="message latency [s]")
-    p.add_argument("--json", type=Path, default=None, help="also write the results to this JSON file")
+    p.add_argument("--json", type=out_file, default=None, help="also write the results to this JSON file")
     p.set_defaults(func=_cmd_run)
 
 
@@ -189,14 +162,13 @@ def _cmd_degrade(args: argparse.Namespace) -> int:
         print(f"loss {loss:g} latency {latency * 1e3:g} ms: tracking {res['tracking_rate']:.3f}, min dist "
               f"{res['mean_min_dist']:.3f} m, p99 {res['tick_to_action_p99_us']:.0f} us", flush=True)
     out = args.out
-    out.parent.mkdir(parents=True, exist_ok=True)
     meta = {"models": str(args.models), "duration_s_per_cell": args.duration, "seed": args.seed,
             "rate_hz": rows[0]["config"]["rate_hz"], "processes": args.processes,
             "spec_hash": rows[0]["config"]["spec_hash"], "observability": rows[0]["config"]["observability"],
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t0)), "machine": _machine(),
             "wall_s": round(time.time() - t0, 1)}
     write_json(out.with_suffix(".json"), {"meta": meta, "rows": rows, "baseline_repeats": repeats})
-    out.with_suffix(".md").write_text(degradation_markdown(meta, rows, repeats))
+    write_text_atomic(out.with_suffix(".md"), degradation_markdown(meta, rows, repeats))
     print(f"wrote {out.with_suffix('.md')} and {out.with_suffix('.json')}")
     return 0
 
@@ -257,11 +229,11 @@ def add_degrade(sub: argparse._SubParsersAction) -> None:
                        description="`run` for every (loss, latency) pair; writes OUT.md and OUT.json.")
     _common(p)
     p.add_argument("--duration", type=_positive, default=30.0, help="seconds of real time per cell")
-    p.add_argument("--losses", type=_floats, default=[0.0, 0.2, 0.5], help="comma-separated loss probabilities")
-    p.add_argument("--latencies", type=_floats, default=[0.0, 0.05, 0.2], help="comma-separated latencies [s]")
-    p.add_argument("--baseline-repeats", type=int, default=0,
+    p.add_argument("--losses", type=float_list(probability, "probabilities in [0, 1]", "0,0.2,0.5"), default=[0.0, 0.2, 0.5], help="comma-separated loss probabilities")
+    p.add_argument("--latencies", type=float_list(nonneg_float, "latencies >= 0 [s]", "0,0.05,0.2"), default=[0.0, 0.05, 0.2], help="comma-separated latencies [s]")
+    p.add_argument("--baseline-repeats", type=nonneg_int, default=0,
                    help="run the first cell this many extra times to show the run-to-run spread")
-    p.add_argument("--out", type=Path, default=Path("results/runtime_degradation"),
+    p.add_argument("--out", type=out_prefix(".md", ".json"), default=Path("results/runtime_degradation"),
                    help="output path without suffix (writes .md and .json)")
     p.set_defaults(func=_cmd_degrade)
 
@@ -275,7 +247,7 @@ SUBCOMMANDS = [add_run, add_degrade, add_bench]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="swarm-runtime", description=__doc__.splitlines()[0].replace("``", ""))
+    parser = ArgumentParser(prog="swarm-runtime", description=__doc__.splitlines()[0].replace("``", ""))
     parser.add_argument("-v", "--verbose", action="store_true", help="log faults and progress")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in SUBCOMMANDS:
@@ -291,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except (PolicyError, SpecError) as exc:
         print(f"swarm-runtime {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     except (RuntimeError, OSError) as exc:
         print(f"swarm-runtime {args.command}: failed: {exc}", file=sys.stderr)
         return 1
