@@ -65,8 +65,9 @@ def export_c(model_path: str | Path, out_dir: str | Path, quant: str = "float", 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     header, source = out / "policy.h", out / "policy.c"
-    header.write_text(sources.header)
-    source.write_text(sources.source)
+    from runtime.cliutil import write_text_atomic  # never a half-written C file after an error or Ctrl-C
+    write_text_atomic(header, sources.header)
+    write_text_atomic(source, sources.source)
     log.info("wrote %s and %s (%s, %d weight bytes, read from %s)", header, source, quant, sources.weight_bytes,
              weights_in)
     return CExport(model, sources, header, source, quant, tanh, weights_in, qlayers)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from firmware_export.cgen import DEFAULT_WEIGHTS_IN, QUANTS, TANHS, WEIGHTS_IN
 from firmware_export.mlp_graph import CExportError
+from runtime.cliutil import ArgumentParser, EXIT_USAGE, in_file, out_dir, positive_int
 from runtime.spec import SpecError
 
 
@@ -44,7 +45,7 @@ def add_c(sub: argparse._SubParsersAction) -> None:
                                    "`swarm-export onnx`: policy.h (API, dimensions, spec hash, role, observation "
                                    "offsets) and policy.c (static const weights, no heap, no stdio).")
     p.add_argument("--model", required=True, type=Path, help="actor ONNX file, e.g. models/role_based/pursuer_0.onnx")
-    p.add_argument("--out", required=True, type=Path, help="output directory, e.g. build/c/")
+    p.add_argument("--out", required=True, type=out_dir, help="output directory, e.g. build/c/")
     p.add_argument("--quant", choices=QUANTS, default="float",
                    help="float: float32 weights; int8w: hidden layers int8 with one float scale per neuron times "
                         "q15 inputs (SMLAD on the Cortex-M4), the output layer float")
@@ -57,20 +58,20 @@ def add_c(sub: argparse._SubParsersAction) -> None:
                         "leaves free (for a firmware built with less of its own state)")
     p.add_argument("--int8-rounding", choices=("gptq", "nearest"), default="gptq",
                    help="int8w only: gptq (error compensation on calibration observations) or nearest")
-    p.add_argument("--calib-obs", type=int, default=20_000,
+    p.add_argument("--calib-obs", type=positive_int, default=20_000,
                    help="int8w with gptq: calibration observations (half random in the spec's ranges, half "
                         "recorded from the simulator; other seeds than the --report parity check)")
     p.add_argument("--tanh", choices=TANHS, default="fast",
                    help="fast: rational approximation (error <= 5e-7, no libm); libm: tanhf (link -lm)")
-    p.add_argument("--spec-toml", type=Path, default=None,
+    p.add_argument("--spec-toml", type=in_file, default=None,
                    help="spec TOML ([spec] table) for models without spec metadata")
     p.add_argument("--role", default=None, help="pursuer|scout|evader, for models without role metadata")
-    p.add_argument("--app", type=Path, default=None,
+    p.add_argument("--app", type=out_dir, default=None,
                    help="also write the Crazyflie app-layer app (template + this policy) to this directory")
     p.add_argument("--report", action="store_true",
                    help="also check parity against onnxruntime and report Cortex-M4 size and cycles "
                         "(needs a host C compiler, arm-none-eabi-gcc and unicorn)")
-    p.add_argument("--report-obs", type=int, default=10_000, help="observations for the --report parity check")
+    p.add_argument("--report-obs", type=positive_int, default=10_000, help="observations for the --report parity check")
     p.set_defaults(func=_cmd_c)
 
 
@@ -91,9 +92,9 @@ def add_onnx(sub: argparse._SubParsersAction) -> None:
                                    "spec in its metadata, checked against torch on random and recorded "
                                    "observations.")
     p.add_argument("--run", required=True, help="training run folder holding actors.pt (runs/NAME)")
-    p.add_argument("--out", required=True, help="models folder to write (models/NAME/)")
-    p.add_argument("--random", type=int, default=10_000, help="random observations for the parity check")
-    p.add_argument("--recorded", type=int, default=10_000, help="recorded observations for the parity check")
+    p.add_argument("--out", required=True, type=out_dir, help="models folder to write (models/NAME/)")
+    p.add_argument("--random", type=positive_int, default=10_000, help="random observations for the parity check")
+    p.add_argument("--recorded", type=positive_int, default=10_000, help="recorded observations for the parity check")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_onnx)
 
@@ -103,7 +104,7 @@ SUBCOMMANDS = [add_onnx, add_c]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="swarm-export", description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="swarm-export", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress")
     sub = parser.add_subparsers(dest="command", required=True)
     for add in SUBCOMMANDS:
@@ -118,7 +119,10 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except (CExportError, SpecError) as exc:
         print(f"swarm-export {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    except OSError as exc:  # a disk or permission failure after the checks: still one line, no traceback
+        print(f"swarm-export {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

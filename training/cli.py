@@ -12,6 +12,7 @@ import logging
 import sys
 from typing import Any, Callable
 
+from runtime.cliutil import ArgumentParser, check_out_dir, check_out_file, positive_int
 from runtime.spec import SpecError
 
 DEFAULT_CONFIG = "configs/role_based.toml"
@@ -42,14 +43,7 @@ def _add_policy(p: argparse.ArgumentParser) -> None:
                         "'random' = uniform random (default classical)")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
+_positive_int = positive_int  # crossplay imports it under this name
 
 
 # ------------------------------------------------------------------------------------------- evaluate
@@ -227,7 +221,7 @@ def _write_md(path: str, head: str, cols: dict, paper) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="swarm-train",
         description="Train, evaluate and draw the heterogeneous pursuit-evasion-exploration swarm.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
@@ -242,16 +236,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+OUTPUT_FILES = ("json", "md", "plot")
+"""Options of any subcommand that name a file to write: checked before the command starts work."""
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Every output path of ``args`` can be written (no file in the way, not a folder): else ``UsageError``
+    naming the option, so that an evaluation or a training is not run for nothing."""
+    for name in OUTPUT_FILES:
+        path = getattr(args, name, None)
+        if isinstance(path, str):
+            try:
+                check_out_file(path)
+            except argparse.ArgumentTypeError as exc:
+                raise UsageError(f"--{name}: {exc}") from None
+    if args.command == "plot" and args.out:  # a folder with --run, else the PNG
+        try:
+            (check_out_dir if args.run else check_out_file)(args.out)
+        except argparse.ArgumentTypeError as exc:
+            raise UsageError(f"--out: {exc}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        check_outputs(args)
         return int(args.func(args) or 0)
     except (SpecError, UsageError) as exc:
         print(f"swarm-train {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except OSError as exc:  # a disk or permission failure after the checks: still one line, no traceback
+        print(f"swarm-train {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"swarm-train {args.command}: interrupted", file=sys.stderr)
         return 130

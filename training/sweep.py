@@ -221,6 +221,7 @@ def summarize_sweep(sweep: SweepConfig, results: list[dict[str, Any]]) -> tuple[
 
 
 def add_sweep_parser(sub: Any) -> None:
+    from runtime.cliutil import out_dir, out_file, positive_int
     p = sub.add_parser(
         "sweep", help="train and evaluate the pursuer-count sweep (Table I) in parallel",
         description="Trains one run per (n_pursuers, seed) of a sweep file and evaluates each on held-out "
@@ -228,16 +229,19 @@ def add_sweep_parser(sub: Any) -> None:
                     "folder holds a checkpoint is resumed.")
     p.add_argument("--config", default="configs/sweep.toml", metavar="PATH",
                    help="sweep TOML (default configs/sweep.toml)")
-    p.add_argument("--steps", type=int, metavar="N", help="env steps per job (overrides the sweep's train.steps)")
-    p.add_argument("--out", metavar="DIR", help="folder of the job runs (overrides the sweep's out)")
-    p.add_argument("--workers", type=int, default=2, metavar="K", help="local worker processes (default 2)")
+    p.add_argument("--steps", type=positive_int, metavar="N", help="env steps per job (overrides the sweep's train.steps)")
+    p.add_argument("--out", type=out_dir, metavar="DIR", help="folder of the job runs (overrides the sweep's out)")
+    p.add_argument("--workers", type=positive_int, default=2, metavar="K", help="local worker processes (default 2)")
     p.add_argument("--ray", metavar="ADDRESS",
                    help="run the jobs as Ray tasks: a cluster address (ray://host:10001, auto) or 'local'")
-    p.add_argument("--json", metavar="PATH", help="also write the summary JSON here (besides <out>/sweep.json)")
+    p.add_argument("--json", type=out_file, metavar="PATH", help="also write the summary JSON here (besides <out>/sweep.json)")
     p.set_defaults(func=cmd_sweep)
 
 
 def cmd_sweep(args: Any) -> int:
+    import argparse
+
+    from runtime.cliutil import check_out_dir, check_out_file, write_text_atomic
     from training.cli import UsageError
     sweep = SweepConfig.from_toml(args.config)
     if args.steps is not None:
@@ -248,6 +252,12 @@ def cmd_sweep(args: Any) -> int:
         sweep = dataclasses.replace(sweep, out=Path(args.out))
     if args.workers < 1:
         raise UsageError(f"--workers: must be >= 1, got {args.workers}")
+    try:  # the sweep file's out too, before hours of training
+        check_out_dir(sweep.out)
+        if args.json:
+            check_out_file(Path(args.json).with_suffix(".md"))
+    except argparse.ArgumentTypeError as exc:
+        raise UsageError(f"out: {exc}") from None
     for job in sweep.jobs():
         job_config(sweep, *job)
     t0 = time.perf_counter()
@@ -257,13 +267,11 @@ def cmd_sweep(args: Any) -> int:
     results = run_ray(sweep, args.ray) if args.ray else run_local(sweep, args.workers)
     doc, md = summarize_sweep(sweep, results)
     doc["wall_s"] = round(time.perf_counter() - t0, 2)
-    sweep.out.mkdir(parents=True, exist_ok=True)
-    (sweep.out / "sweep.json").write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
-    (sweep.out / "sweep.md").write_text(md)
+    write_text_atomic(sweep.out / "sweep.json", json.dumps(doc, indent=2, sort_keys=True) + "\n")
+    write_text_atomic(sweep.out / "sweep.md", md)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
-        Path(args.json).with_suffix(".md").write_text(md)
+        write_text_atomic(args.json, json.dumps(doc, indent=2, sort_keys=True) + "\n")
+        write_text_atomic(Path(args.json).with_suffix(".md"), md)
     print(md)
     print(f"wrote {sweep.out / 'sweep.json'}" + (f" and {args.json}" if args.json else ""))
     return 0

@@ -495,18 +495,19 @@ def train(cfg: ExperimentConfig, out: str | Path, resume: bool = False, progress
 
 
 def add_train_parser(sub: Any) -> None:
+    from runtime.cliutil import out_dir, positive_int
     p = sub.add_parser(
         "train", help="train Role-based MADDPG (all roles at once, evaders included)",
         description="Trains every agent of a config with Role-based MADDPG and writes a run folder: config.toml, "
                     "run.json (git revision), metrics.csv, tb/ (TensorBoard), checkpoints/ and actors.pt. "
                     "Ctrl-C saves a checkpoint; --resume continues it.")
     p.add_argument("--config", metavar="PATH", help="experiment TOML (not needed with --resume)")
-    p.add_argument("--out", required=True, metavar="RUN", help="run folder, e.g. runs/role_based")
-    p.add_argument("--steps", type=int, metavar="N", help="env steps per env to reach (overrides train.steps)")
+    p.add_argument("--out", required=True, type=out_dir, metavar="RUN", help="run folder, e.g. runs/role_based")
+    p.add_argument("--steps", type=positive_int, metavar="N", help="env steps per env to reach (overrides train.steps)")
     p.add_argument("--seed", type=int, metavar="S", help="training seed (overrides train.seed)")
     p.add_argument("--device", metavar="D", help="torch device: cpu, cuda or cuda:K (overrides train.device)")
-    p.add_argument("--n-envs", type=int, metavar="K", help="envs stepped together (overrides train.n_envs)")
-    p.add_argument("--threads", type=int, metavar="T", help="torch CPU threads (overrides train.threads)")
+    p.add_argument("--n-envs", type=positive_int, metavar="K", help="envs stepped together (overrides train.n_envs)")
+    p.add_argument("--threads", type=positive_int, metavar="T", help="torch CPU threads (overrides train.threads)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--init-from", metavar="RUN",
                    help="start this new run from RUN's last checkpoint (networks, optimizers, replay buffer, env "
@@ -524,6 +525,11 @@ def cmd_train(args: Any) -> int:
         if args.resume and args.seed is not None:
             raise RunError("--seed cannot change on --resume: the run keeps its own seed")
         out = Path(args.out)
+        if args.init_from is not None and not (Path(args.init_from) / "checkpoints" / "state.pt").is_file():
+            raise RunError(f"--init-from {args.init_from}: nothing to start from, "
+                           f"{Path(args.init_from) / 'checkpoints' / 'state.pt'} does not exist; give a run "
+                           f"folder that `swarm-train train` wrote")
+        created = not out.exists()  # removed again when the run fails to start: no half-made run folder
         handler = logging.FileHandler(out / "train.log") if out.is_dir() else None
         if handler is None:
             out.mkdir(parents=True, exist_ok=True)
@@ -531,7 +537,15 @@ def cmd_train(args: Any) -> int:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         logging.getLogger().addHandler(handler)
         logging.getLogger().setLevel(min(logging.getLogger().level or logging.INFO, logging.INFO))
-        result = train(cfg, out, resume=args.resume, progress=not args.no_progress, init_from=args.init_from)
+        try:
+            result = train(cfg, out, resume=args.resume, progress=not args.no_progress, init_from=args.init_from)
+        except RunError:
+            logging.getLogger().removeHandler(handler)
+            handler.close()
+            if created:
+                import shutil
+                shutil.rmtree(out, ignore_errors=True)
+            raise
     except RunError as exc:
         raise UsageError(str(exc)) from None
     d = result.to_dict()
