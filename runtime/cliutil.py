@@ -56,7 +56,7 @@ def int_at_least(low: int, unit: str = "") -> Callable[[str], int]:
     def parse(text: str) -> int:
         v = _number(text, int, what)
         if v < low:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"must be >= {low}" + (f" ({unit})" if unit else "") + f", got {text!r}")
         return v
     parse.__name__ = f"int >= {low}"
     return parse
