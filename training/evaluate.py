@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -94,19 +93,7 @@ def mean_of(docs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     return out
 
 
-def write_text_atomic(path: str | Path, text: str) -> Path:
-    """Writes ``text`` to a temporary file beside ``path`` and renames it over ``path``: a reader (or a crash)
-    sees the old file or the new one, never half of one."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, p)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return p
+from runtime.cliutil import write_text_atomic  # noqa: E402,F401  (one atomic write for every package)
 
 
 def format_table(results: Mapping[str, Mapping[str, float]], paper: Mapping[str, float] | None = None) -> str:
