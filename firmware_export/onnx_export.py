@@ -47,7 +47,11 @@ log = logging.getLogger(__name__)
 
 MANIFEST_FORMAT = 1
 OPSET = 18
-PARITY_TOL = 1e-5
+PARITY_TOL = 5e-5
+"""Largest |onnxruntime - torch| accepted on an action in [-1, 1]. Both compute in float32 with their own
+summation order: over two 64-wide layers fed observations of up to a few metres that differs by up to ~2e-5
+(measured 1.3e-5 and 1.7e-5 on models/paper_flight's pursuer_1 with random observations of seeds 0 and 1),
+while a graph that computes anything else differs by 1e-2 or more."""
 INPUT_NAME = "obs"
 OUTPUT_NAME = "action"
 EVALUATION_FILES = ("evaluation.json", "eval.json", "results.json")

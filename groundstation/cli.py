@@ -109,8 +109,10 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     from groundstation.demo import DemoOptions
     d = DemoOptions()
     p = subparsers.add_parser(
-        "demo", help="fly the whole stack against 12 simulated Crazyflies through cflib",
-        description="Start 12 simulated Crazyflies (5 pursuers, 5 scouts, 2 evaders), connect through cflib over "
+        "demo", help="fly the whole stack against simulated Crazyflies through cflib (one per agent of --models)",
+        description="Start one simulated Crazyflie per agent of the models (12 for models/role_based: 5 pursuers, 5 "
+                    "scouts, 2 evaders; 6 for models/paper_flight, the paper's real-drone team, whose flight figure "
+                    "is printed beside ours), connect through cflib over "
                     "udp://, assign roles, fly the mission with the exported actors, land, and print the paper's "
                     "metrics and link statistics. Ctrl-C lands everyone.")
     p.add_argument("--duration", type=float, default=d.duration, help=f"mission time [s] (default {d.duration:g})")
@@ -127,7 +129,8 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                    help="how the actors run: onnxruntime (default) or compiled (the same ONNX actors compiled with "
                         "numba, checked against onnxruntime at load)")
     p.add_argument("--spec", default=d.spec, metavar="TOML",
-                   help=f"experiment TOML whose [spec] the ground station uses (default {d.spec})")
+                   help="experiment TOML whose [spec] the ground station uses (default: the spec the models "
+                        "were trained on, from their manifest.json; a different one fails preflight)")
     p.add_argument("--fence", default=d.fence, metavar="TOML", help=f"geofence (default {d.fence}); its "
                    "keep-out circles are replaced by the obstacles drawn for the demo")
     p.add_argument("--anchors", default=d.anchors, metavar="TOML", help=f"LPS anchors (default {d.anchors})")

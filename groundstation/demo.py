@@ -90,8 +90,9 @@ class DemoOptions:
     models: str = "models/role_based"
     engine: str = "onnxruntime"
     """How the actors run: "onnxruntime" or "compiled" (``runtime.spec.ENGINES``)."""
-    spec: str | None = "configs/role_based.toml"
-    """TOML whose [spec] table is the spec the ground station encodes observations for (None: defaults)."""
+    spec: str | None = None
+    """TOML whose [spec] table is the spec the ground station encodes observations for (None: the spec the
+    models were trained on, from their manifest; a given one must match it, preflight checks)."""
     fence: str = "configs/fence.toml"
     anchors: str = "configs/lps_anchors.toml"
     flight: str | None = None
@@ -294,8 +295,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
         raise DemoError(f"--duration: must be > 0 s, got {opts.duration}")
     if not (opts.speed > 0 and math.isfinite(opts.speed)):
         raise DemoError(f"--speed: must be > 0, got {opts.speed}")
-    spec = SwarmSpec.from_toml(opts.spec) if opts.spec else SwarmSpec()
     manifest = read_manifest(opts.models)  # ModelNotFound / ModelCorrupted say how to export
+    spec = SwarmSpec.from_toml(opts.spec) if opts.spec else manifest.spec  # the team flown is the models'
     flight_cfg = FlightConfig.from_toml(opts.flight) if opts.flight else FlightConfig()
     flight_cfg = dataclasses.replace(flight_cfg, speed_scale=flight_cfg.speed_scale * opts.speed)
     separation = SeparationConfig.from_dict(load_toml(opts.flight).get("separation", {})) if opts.flight \
