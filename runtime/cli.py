@@ -55,7 +55,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="radio range [m] (default: the spec's comm_range with partial observability, unlimited "
                         "with full)")
     p.add_argument("--jitter", type=_nonneg, default=0.0, help="extra uniform message delay up to this [s]")
-    p.add_argument("--seed", type=int, default=0, help="world and channel seed")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="world and channel seed")
     p.add_argument("--no-stagger", action="store_true", help="all agents tick at the same instant")
     p.add_argument("--no-warm", action="store_true", help="no warm-up inference before the tick")
     p.add_argument("--no-reuse", action="store_true",

@@ -59,6 +59,7 @@ CASES = [
     ("runtime.cli", "run --models M --json DIR", ["--json", "is a folder"], None),
     ("runtime.cli", "run --models NONE", ["ModelNotFound", "swarm-export onnx"], None),
     ("runtime.cli", "run --models DIR", ["manifest.json", "swarm-export onnx"], None),
+    ("runtime.cli", "run --models M --seed -1", ["--seed", "'-1'", ">= 0"], None),
     ("runtime.cli", "run --models M --engine gpu", ["--engine", "'gpu'"], None),
     ("training.cli", "evaluate --json FILE/e.json --episodes 1", ["--json", "is a file"], "FILE/e.json"),
     ("training.cli", "evaluate --md FILE/e.md --episodes 1", ["--md", "is a file"], "FILE/e.md"),
