@@ -389,8 +389,10 @@ class FlightSession:
         tel = d.link.telemetry()
         if tel is None or d.link.link_lost:
             return f"link down: no telemetry for {d.link.telemetry_age():.2f} s"
-        if tel.flight_state is not FlightState.LANDED:
-            return f"flight state {tel.flight_state.value}, expected landed (armed, on the ground)"
+        ready = (FlightState.LANDED, FlightState.DISARMED) if d.link.arms_on_takeoff else (FlightState.LANDED,)
+        if tel.flight_state not in ready:
+            return (f"flight state {tel.flight_state.value}, expected "
+                    + " or ".join(r.value for r in ready) + " (on the ground)")
         if not tel.battery >= cfg.min_takeoff_battery_v:
             return f"battery {tel.battery:.2f} V below {cfg.min_takeoff_battery_v:.2f} V: charge or swap it"
         pos = self.tracker.position(d.id)

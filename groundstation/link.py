@@ -112,6 +112,10 @@ class Link(abc.ABC):
     runs the callbacks and answers ``telemetry()``, ``telemetry_age()`` and ``link_lost``.
     """
 
+    arms_on_takeoff = False
+    """True where the vehicle sits disarmed on the ground and ``takeoff`` arms it (ArduPilot, PX4): preflight
+    then accepts DISARMED as ready; a Crazyflie arms itself and must report LANDED."""
+
     link_loss_timeout: float = 0.25
     """Telemetry silence after which ``link_lost`` is True [s]. Radio and UDP drivers do not notice a
     silent peer, so loss is judged from telemetry alone."""

@@ -192,6 +192,8 @@ class MavlinkLink(Link):
     ...     link.takeoff(1.0, 2.0).result(timeout=10)
     """
 
+    arms_on_takeoff = True  # ArduPilot and PX4 rest disarmed; takeoff() arms through the worker
+
     def __init__(self, uri: str, *, connect_timeout: float = 10.0, heartbeat_period: float = 0.25,
                  telemetry_rate: float = 50.0, period_ms: int | None = None, link_loss_timeout: float = 0.25,
                  ack_timeout: float = 0.5, retries: int = 3, source_system: int = 255, source_component: int = 190,

@@ -48,6 +48,7 @@ def flight():
         recorder = JsonlRecorder()
         session = FlightSession(links, {d: PURSUER_TEAM for d in DRONES}, fence, quick_flight(), record=recorder)
         with session:
+            out["preflight"] = session.preflight(timeout=10.0)  # disarmed on the ground is ready for MAVLink
             out["flying"] = session.takeoff()
             # PX4 flies the stream only in OFFBOARD, which the link asks for once the stream runs
             out["offboard"] = wait_until(lambda: all(vehicles[d].flight_mode == "OFFBOARD" for d in DRONES
@@ -77,6 +78,10 @@ def flight():
         for v in vehicles.values():
             v.stop()
     return out
+
+
+def test_disarmed_vehicles_pass_preflight(flight):
+    assert flight["preflight"] == {}
 
 
 def test_every_vehicle_took_off_and_px4_went_offboard(flight):

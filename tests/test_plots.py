@@ -56,7 +56,7 @@ def test_plot_command_bad_config_is_a_clear_error(tmp_path, capsys):
     blocker.write_text("")
     assert main(["plot", "--config", str(ROOT / "configs/role_based.toml"), "--out", str(blocker / "x.png")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("swarm-train plot: error: cannot write") and "Traceback" not in err
+    assert err.startswith("swarm-train plot: error: --out: cannot write") and "Traceback" not in err
 
 
 def test_recorded_episode_stays_in_the_free_arena(role_based, trace):
