@@ -14,6 +14,7 @@ import threading
 import time
 
 from groundstation.sim.swarm import DEFAULT_BASE_PORT, SimError, SimSwarm
+from runtime.cliutil import port
 from runtime.spec import ENGINES
 
 
@@ -23,7 +24,7 @@ def _add_sim(subparsers: argparse._SubParsersAction) -> None:
         description="Start N simulated Crazyflies on UDP ports base-port+i. Connect with cflib as "
                     "udp://HOST:PORT, e.g. SyncCrazyflie('udp://127.0.0.1:19850'). Ctrl-C stops them.")
     p.add_argument("--drones", type=int, default=1, help="number of drones (default 1)")
-    p.add_argument("--base-port", type=int, default=DEFAULT_BASE_PORT,
+    p.add_argument("--base-port", type=port, default=DEFAULT_BASE_PORT,
                    help=f"UDP port of drone 0 (default {DEFAULT_BASE_PORT}, where cflib scans)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the positioning noise (default 0)")
@@ -33,7 +34,7 @@ def _add_sim(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--mavlink", type=int, default=0, metavar="M",
                    help="also run M simulated MAVLink vehicles (system ids 1..M) that send to a ground station "
                         "listening on --mavlink-port+i; connect with mavlink:udpin:HOST:PORT (default 0)")
-    p.add_argument("--mavlink-port", type=int, default=14550,
+    p.add_argument("--mavlink-port", type=port, default=14550,
                    help="UDP port the ground station listens on for vehicle 1 (default 14550)")
     p.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
                    help="what the MAVLink vehicles behave as: 'ardupilot' (ArduCopter: GUIDED, LAND, RTL, LOITER "
@@ -47,6 +48,12 @@ def _run_sim(args: argparse.Namespace) -> int:
         print("swarm-gs sim: --drones and --mavlink must be >= 0 and at least one drone in all; "
               "e.g. --drones 3, or --drones 0 --mavlink 1", file=sys.stderr)
         return 2
+    for name, base, n in (("--base-port", args.base_port, args.drones), ("--mavlink-port", args.mavlink_port,
+                                                                        args.mavlink)):
+        if n and base + n - 1 > 65535:
+            print(f"swarm-gs sim: {name}: {base} + {n} drones passes port 65535; use a base port <= {65536 - n}",
+                  file=sys.stderr)
+            return 2
     sims = None
     vehicles = []
     try:
@@ -136,7 +143,7 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--anchors", default=d.anchors, metavar="TOML", help=f"LPS anchors (default {d.anchors})")
     p.add_argument("--flight-config", default=None, metavar="TOML", help="TOML with a [flight] table")
     p.add_argument("--seed", type=int, default=d.seed, help="obstacles, start positions, noise (default 0)")
-    p.add_argument("--base-port", type=int, default=None, help="UDP port of drone 0 (default: a free range)")
+    p.add_argument("--base-port", type=port, default=None, help="UDP port of drone 0 (default: a free range)")
     _add_no_separation(p)
     p.set_defaults(func=_run_demo)
 

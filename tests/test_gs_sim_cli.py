@@ -33,3 +33,17 @@ def test_sim_heartbeats_as_the_chosen_autopilot(autopilot, expected):
         proc.terminate()
         proc.wait(timeout=30)
         gcs.close()
+
+
+@pytest.mark.parametrize("args, needle", [(["sim", "--base-port", "70000"], "--base-port"),
+                                          (["sim", "--drones", "12", "--base-port", "65530"], "--base-port: 65530"),
+                                          (["sim", "--mavlink-port", "0"], "--mavlink-port"),
+                                          (["demo", "--base-port", "-1"], "--base-port")])
+def test_bad_ports_are_one_line_usage_errors(args, needle, capsys):
+    from groundstation.cli import main
+    with pytest.raises(SystemExit) as exc:
+        code = main(args)
+        raise SystemExit(code)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err
