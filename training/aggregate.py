@@ -22,7 +22,7 @@ import numpy as np
 from training.baselines import ClassicalPursuers, TeamPolicy
 from training.evader_spec import SUITE_MEAN, expand, label, make_evaders
 from training.evaluate import EVAL_SEED_OFFSET, evaluate, mean_of, write_text_atomic
-from training.learned_eval import LearnedModelError, load_source, team
+from training.learned_eval import LearnedModelError, load_sources, team
 
 log = logging.getLogger(__name__)
 
@@ -59,12 +59,8 @@ def evaluate_runs(sources: Sequence[str], kinds: list[str], episodes: int, seed:
                   classical: bool = True, progress: bool = True) -> dict[str, Any]:
     """Every source against every kind; per kind: ``runs`` (one metrics dict per source), ``mean``/``min``/
     ``max`` over them and ``classical`` (metrics, or per-run metrics and their spread for learned evaders)."""
-    loaded = [load_source(s) for s in sources]
+    loaded = load_sources(sources, "aggregate runs of one configuration (different seeds) only")
     cfg = loaded[0][0]
-    for c, _, src in loaded[1:]:
-        if c.spec.hash != cfg.spec.hash:
-            raise LearnedModelError(f"{src} has spec {c.spec.hash}, {loaded[0][2]} has {cfg.spec.hash}: aggregate "
-                                    f"runs of one configuration (different seeds) only")
     per_kind: dict[str, dict[str, Any]] = {}
     for kind in kinds:
         name = label(kind)

@@ -19,7 +19,7 @@ import numpy as np
 
 from training.baselines import ClassicalPursuers, TeamPolicy
 from training.evaluate import EVAL_SEED_OFFSET, evaluate, write_text_atomic
-from training.learned_eval import LearnedModelError, load_source
+from training.learned_eval import LearnedModelError, load_sources
 
 log = logging.getLogger(__name__)
 
@@ -43,12 +43,9 @@ def crossplay(sources: Sequence[str], episodes: int = 200, seed: int = 0, n_envs
     ``classical[key][j]`` (the classical team vs source j's evaders) and each row's and column's mean."""
     if len(sources) < 1:
         raise LearnedModelError("crossplay needs at least one run or models folder")
-    loaded = [load_source(s) for s in sources]
+    loaded = load_sources(sources, "cross-play needs the same team and observation layout (runs of one "
+                                   "configuration)")
     cfg = loaded[0][0]
-    for c, _, src in loaded[1:]:
-        if c.spec.hash != cfg.spec.hash:
-            raise LearnedModelError(f"{src} has spec {c.spec.hash}, {loaded[0][2]} has {cfg.spec.hash}: cross-play "
-                                    f"needs the same team and observation layout (runs of one configuration)")
     names = source_names(list(sources))
     n = len(loaded)
     cells: list[list[dict[str, float]]] = [[{} for _ in range(n)] for _ in range(n)]

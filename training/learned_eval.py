@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -69,6 +69,16 @@ def load_source(path: str | Path) -> tuple[ExperimentConfig, Policy, str]:
         return load_learned(models=p)
     raise LearnedModelError(f"{str(path)!r} is neither a training run (config.toml) nor a models folder "
                             f"(manifest.json): give runs/NAME or models/NAME")
+
+
+def load_sources(paths: Sequence[str | Path], why: str) -> list[tuple[ExperimentConfig, Policy, str]]:
+    """``load_source`` of each path, all of one spec (``why``: what needs that, for the error)."""
+    loaded = [load_source(s) for s in paths]
+    first = loaded[0]
+    for c, _, src in loaded[1:]:
+        if c.spec.hash != first[0].spec.hash:
+            raise LearnedModelError(f"{src} has spec {c.spec.hash}, {first[2]} has {first[0].spec.hash}: {why}")
+    return loaded
 
 
 def team(learned: Policy, evader: str, seed: int = 0) -> Policy:
