@@ -75,11 +75,14 @@ class OpponentMixer:
         if self.pool is not None and drawn.size:
             self.pool.resample(drawn)
 
-    def maybe_snapshot(self, env_step: int, actors: torch.nn.Module) -> None:
-        """Every ``opponent_snapshot_every`` env steps: freeze a copy of the actors (the evader rows are used)."""
+    def snapshot_due(self, env_step: int) -> bool:
+        """True every ``opponent_snapshot_every`` env steps while mixing with learned evaders."""
         tc = self.tc
-        if tc.opponent_mix <= 0 or self.scripted is not None or env_step % tc.opponent_snapshot_every:
-            return
+        return tc.opponent_mix > 0 and self.scripted is None and env_step % tc.opponent_snapshot_every == 0
+
+    def add_snapshot(self, actors: torch.nn.Module) -> None:
+        """Freeze a copy of the actors (their evader rows are used), keeping the newest ``opponent_snapshots``."""
+        tc = self.tc
         self.snapshots.append(copy.deepcopy(actors).requires_grad_(False))
         del self.snapshots[:-tc.opponent_snapshots]
 

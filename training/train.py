@@ -161,6 +161,7 @@ class Trainer:
         self.agent = MADDPG(cfg.spec, tc)
         self.np_rng = np.random.default_rng(tc.seed + 3)
         self.mixer = OpponentMixer(cfg.spec, tc, np.random.default_rng(tc.seed + 4))
+        self._learns = self.agent.learn_mask.cpu().numpy() > 0  # [N] agents whose actors train
         self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
         self.sample_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 1)
         self.noise_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 2)
@@ -279,7 +280,7 @@ class Trainer:
         """Actions ``[B, N, 2]`` for every env and ``given`` ``[B, N]``: True where the action is not a learner's
         (scripted or frozen evaders, static agents), so that the TD target bootstraps on it."""
         tc = self.tc
-        learns = self.agent.learn_mask.cpu().numpy() > 0
+        learns = self._learns
         if self.env_step < tc.warmup_steps:
             a = self.np_rng.uniform(-1.0, 1.0, (tc.n_envs, self.spec.n_agents, 2))
             a = a * learns[None, :, None]
@@ -336,8 +337,8 @@ class Trainer:
                 pending = (obs, actions, rew, store_next, given, done_ids)
                 obs = next_obs
                 self.env_step += 1
-                if self.env_step % tc.opponent_snapshot_every == 0:  # one actor row per agent, on raw obs
-                    self.mixer.maybe_snapshot(self.env_step, self.agent.frozen_actors())
+                if self.mixer.snapshot_due(self.env_step):  # one actor row per agent, on raw obs
+                    self.mixer.add_snapshot(self.agent.frozen_actors())
                 self._record(win, rew, done, info)
                 if (self.env_step >= tc.warmup_steps and len(self.buffer) >= tc.batch_size
                         and self.env_step % tc.update_every == 0):
