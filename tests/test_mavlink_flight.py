@@ -52,20 +52,21 @@ def flight():
             out["flying"] = session.takeoff()
             # PX4 flies the stream only in OFFBOARD, which the link asks for once the stream runs
             out["offboard"] = wait_until(lambda: all(vehicles[d].flight_mode == "OFFBOARD" for d in DRONES
-                                                     if DRONES[d] is Autopilot.PX4), 5.0)
+                                                     if DRONES[d] is Autopilot.PX4), 20.0)
             out["modes_in_flight"] = {d: v.flight_mode for d, v in vehicles.items()}
             t_cut = time.monotonic()
             for d in SILENCED:
                 vehicles[d].kill_link()
-            wait_until(lambda: all(session.status(d) is DroneStatus.LOST for d in SILENCED), 3.0)
+            wait_until(lambda: all(session.status(d) is DroneStatus.LOST for d in SILENCED), 20.0)
             out["statuses_lost"] = session.statuses()
             for d in DRONES:
                 if d not in SILENCED:
                     session.land(d, "test: end of flight")
             wait_until(lambda: all(session.status(d) is DroneStatus.LANDED for d in DRONES if d not in SILENCED),
-                       10.0)
+                       60.0)
             # the silent vehicles land by themselves; the session keeps asking them to, unanswered
-            wait_until(lambda: all(not vehicles[d].armed for d in SILENCED), 20.0)
+            # generous: on a loaded machine the threads run late; the vehicles' own timers say how long it takes
+            out["silent_down"] = wait_until(lambda: all(not vehicles[d].armed for d in SILENCED), 60.0)
             out["silent_down_after"] = time.monotonic() - t_cut
             out["statuses_end"] = session.statuses()
         out["session"] = session
@@ -92,6 +93,8 @@ def test_every_vehicle_took_off_and_px4_went_offboard(flight):
 
 
 def test_silent_vehicles_are_lost_and_land_on_their_own_failsafes(flight):
+    assert flight["silent_down"], {d: (v.armed, v.flight_mode, v.position.tolist())
+                                   for d, v in flight["vehicles"].items()}
     for d in SILENCED:
         assert flight["statuses_lost"][d] is DroneStatus.LOST
         assert flight["statuses_end"][d] is DroneStatus.LOST  # the ground station never heard back

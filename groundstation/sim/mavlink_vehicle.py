@@ -90,7 +90,9 @@ class VehicleConfig:
     arrive_tolerance: float = 0.05
     """Takeoff is over within this distance of its height [m]."""
     max_step: float = 0.05
-    """Longest physics step [s]: a thread that was descheduled longer loses time instead of jumping."""
+    """Longest physics step [s]: a thread that was descheduled longer catches up in steps of this length."""
+    max_catch_up: float = 1.0
+    """Longest gap it catches up [s]; beyond it, the vehicle loses the time (a stopped process, not a slow one)."""
     quad: QuadParams = field(default_factory=QuadParams)
     """Flight model (time constant, speed and acceleration limits, estimation noise, battery)."""
 
@@ -250,11 +252,15 @@ class MavlinkVehicle(AutopilotCommands):
                     except Exception:  # a malformed message must not stop the vehicle
                         logger.exception("vehicle %d: handling %s failed", self.config.system_id, msg.get_type())
             now = self.clock()
-            dt = min(now - last, self.config.max_step)
-            last = now
             with self.lock:
-                if dt > 0:
-                    self.step(dt, now)
+                # a busy machine deschedules this thread for tens of ms: catch up in short steps so that the
+                # vehicle's flight keeps the pace of its (wall-clock) timers, as the firmware's loop does
+                t = max(last, now - self.config.max_catch_up)
+                while now - t > 1e-9:
+                    dt = min(now - t, self.config.max_step)
+                    t += dt
+                    self.step(dt, t)
+                last = now
                 if self.link_alive:
                     self._send_due(now)
                     self._fences.retry(now)
