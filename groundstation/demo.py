@@ -49,6 +49,7 @@ from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, KeepOut, in_safe_set
 from groundstation.separation import SeparationConfig
 from groundstation.sim.swarm import SimSwarm, free_base_port
+from runtime.cliutil import json_safe, write_text_atomic
 from runtime.metrics import MetricsAccumulator
 from runtime.paper import FLIGHT_TEAM, PAPER
 from runtime.policy import load_models, read_manifest
@@ -352,10 +353,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             if relay is not None:
                 relay.close()
             recorder.close()
-    if opts.json_path:
-        p = Path(opts.json_path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(result, indent=2, sort_keys=True, default=str) + "\n")
+    if opts.json_path:  # atomically: an interrupted or failed write leaves the previous file, never half of one
+        write_text_atomic(opts.json_path, json.dumps(json_safe(result), indent=2, sort_keys=True, default=str) + "\n")
     if opts.plot_path:
         plot_flight(opts.plot_path, recorder.rows, fence, anchors, ids, teams, result)
     return result
@@ -371,11 +370,13 @@ def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacl
         policies = {p.agent_id: p for p in pols}
         session.assign_roles()
         session.takeoff()
+        t_ready = time.monotonic()
         pilot = AgentPilot(session, spec, policies, obstacles, on_step=metrics)
-        session.start_mission()
-        t_mission = time.monotonic()
-        sent0 = [link.stats() for link in links]
         with pilot:
+            # the mission clock starts when every runtime flies its actor (a cold start only delays it)
+            t_mission = pilot.begin_mission()
+            result["startup_s"] = round(t_mission - t_ready, 3)
+            sent0 = [link.stats() for link in links]
             killed = False
             while time.monotonic() - t_mission < opts.duration:
                 if kill is not None and not killed and time.monotonic() - t_mission >= kill[1]:

@@ -188,8 +188,8 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
             echo(f"roles: {session.assignment.by_drone}")
             session.takeoff()
             echo(f"flying: {', '.join(session.flying())}")
-            with AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles):
-                session.start_mission()
+            with AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles) as pilot:
+                pilot.begin_mission()  # when every runtime has its first command: a slow start only waits
                 end = time.monotonic() + duration
                 while time.monotonic() < end and session.flying() and not stop.is_set():
                     stop.wait(0.1)

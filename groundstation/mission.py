@@ -38,7 +38,8 @@ from runtime.spec import SwarmSpec
 log = logging.getLogger(__name__)
 
 StepCallback = Callable[[float, np.ndarray, np.ndarray, np.ndarray], None]
-"""``on_step(t, pos [N, 2], vel [N, 2], present [N] bool)`` once per control period, actors in spec order."""
+"""``on_step(t, pos [N, 2], vel [N, 2], present [N] bool)`` once per control period from the mission's start
+(``AgentPilot.begin_mission``; ``t`` counts from it), actors in spec order."""
 
 PARK_OFFSET = 1.0
 """How far beyond the arena's corner a never-flown actor is parked [m]."""
@@ -133,6 +134,7 @@ class AgentPilot:
         self._start_lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._t0 = 0.0
+        self._mission_t0: float | None = None
         self.ticks = 0
         """Control periods of the pilot's own loop (metrics and broadcasts for vacant actors)."""
 
@@ -155,6 +157,34 @@ class AgentPilot:
             for agent, actor in zip(self.agents, self.agent_ids):
                 if actor in assignment.by_actor and not agent.running:
                     agent.start(self._t0)
+
+    def begin_mission(self, timeout: float = 60.0, poll: float = 0.01) -> float:
+        """Start the session's mission once every flying drone's runtime has produced its first command from its
+        actor (numba compiled, onnxruntime warmed, first observation built, teammates heard); until then the
+        drones hover and nothing counts. A slow start delays the mission; a runtime that produced nothing in
+        ``timeout`` seconds is an agent fault of its drone (it lands, the rest fly). Returns the mission's start
+        (``time.monotonic()``); ``on_step`` times count from it."""
+        deadline = time.monotonic() + timeout
+        waiting = self.not_ready()
+        while waiting and time.monotonic() < deadline and not self._stop.is_set():
+            time.sleep(poll)
+            waiting = self.not_ready()
+        for actor, drone in waiting.items():
+            self.session.report_agent_fault(
+                drone, f"actor {actor}: its runtime produced no command in {timeout:.0f} s of start-up "
+                       f"(a model that cannot run here, or a machine too busy: see the log)")
+        self.session.start_mission()
+        self._mission_t0 = time.monotonic()
+        return self._mission_t0
+
+    def not_ready(self) -> dict[str, str]:
+        """{actor: drone} of the flying drones whose runtime has not yet produced a command from its actor."""
+        out = {}
+        for agent, actor in zip(self.agents, self.agent_ids):
+            drone = self.session.assignment.by_actor.get(actor)
+            if drone is not None and self.session.is_flying(drone) and agent.stats.actions == 0:
+                out[actor] = drone
+        return out
 
     def stop(self) -> None:
         with self._start_lock:
@@ -229,8 +259,8 @@ class AgentPilot:
             now = time.monotonic()
             try:
                 self._broadcast_vacant(now)
-                if self.on_step is not None:
-                    self.on_step(now - self._t0, self._pos.copy(), self._vel.copy(), self._present.copy())
+                if self.on_step is not None and self._mission_t0 is not None:
+                    self.on_step(now - self._mission_t0, self._pos.copy(), self._vel.copy(), self._present.copy())
             except Exception:  # metrics or a broadcast must not take the mission down
                 log.exception("agent pilot step failed")
             self.ticks += 1

@@ -53,8 +53,8 @@ def flight(tmp_path_factory):
                 session.takeoff()
                 out["flying_after_takeoff"] = session.flying()
                 pilot = AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles)
-                session.start_mission()
                 with pilot:
+                    pilot.begin_mission()
                     time.sleep(FAIL_AT)
                     by_role = {role: [] for role in Role}
                     for d in first.by_actor.values():
