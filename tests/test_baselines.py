@@ -1,4 +1,5 @@
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,10 +11,12 @@ from training.config import ExperimentConfig
 from training.env import PursuitEnv
 from training.evaluate import evaluate
 
+ROOT = Path(__file__).resolve().parents[1]
+
 
 @pytest.fixture(scope="module")
 def role_based():
-    return ExperimentConfig.from_toml("configs/role_based.toml")
+    return ExperimentConfig.from_toml(ROOT / "configs" / "role_based.toml")
 
 
 @pytest.mark.parametrize("p, e", [(5, 2), (6, 3), (2, 2), (7, 3)])

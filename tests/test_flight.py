@@ -3,6 +3,7 @@ setpoint, landing on exceptions and Ctrl-C, emergency stop, the fleet file and `
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,8 @@ from groundstation.roles import EVADER_TEAM, PURSUER_TEAM  # noqa: E402
 from groundstation.safety import FenceConfig, FenceStatus, check_position  # noqa: E402
 from groundstation.sim.swarm import SimSwarm, free_base_port  # noqa: E402
 from runtime.spec import SpecError  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
 
 ACTORS = [{"id": "pursuer_0", "role": "pursuer"}, {"id": "scout_0", "role": "scout"},
           {"id": "evader_0", "role": "evader"}]
@@ -65,9 +68,9 @@ def test_fleet_file_errors_name_the_field(tmp_path):
                    '[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
     with pytest.raises(SpecError, match=r"engine: 'tensorrt' is not 'onnxruntime' or 'compiled'"):
         FleetConfig.from_toml(bad)
-    fleet, flight = FleetConfig.from_toml("configs/fleet_example.toml")
+    fleet, flight = FleetConfig.from_toml(ROOT / "configs" / "fleet_example.toml")
     assert len(fleet.drones) == 4 and flight.speed_scale == 0.5 and fleet.engine == "onnxruntime"
-    sep = load_separation("configs/fleet_example.toml")
+    sep = load_separation(ROOT / "configs" / "fleet_example.toml")
     assert sep.enabled and sep.min_distance == pytest.approx(0.35) and sep.capture_distance == 0.5
     bad.write_text('[fleet]\n[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n'
                    '[separation]\nmin_distanse = 0.3\n')
@@ -194,14 +197,15 @@ def test_fleet_commands_over_udp(tmp_path, capsys):
     spec = small_spec()
     models = write_models(tmp_path / "models", spec, seed=4)
     (tmp_path / "spec.toml").write_text("[spec.team]\nn_pursuers = 2\nn_scouts = 2\nn_evaders = 1\n")
-    fence = FenceConfig.from_toml("configs/fence.toml")
+    fence = FenceConfig.from_toml(ROOT / "configs" / "fence.toml")
     starts = start_positions(fence, 3, seed=4)
     with SimSwarm(3, base_port=free_base_port(3, seed=24), seed=4, start_positions=starts) as sims:
         drones = "".join(f'[[fleet.drones]]\nid = "cf{i}"\nuri = "{u}"\nteam = "{"evader" if i == 2 else "pursuer"}"\n'
                          for i, u in enumerate(sims.uris))
         fleet = tmp_path / "fleet.toml"
         fleet.write_text(f'[fleet]\nmodels = "{models}"\nspec = "{tmp_path / "spec.toml"}"\n'
-                         f'fence = "configs/fence.toml"\nanchors = "configs/lps_anchors.toml"\n{drones}'
+                         f'fence = "{ROOT / "configs" / "fence.toml"}"\n'
+                         f'anchors = "{ROOT / "configs" / "lps_anchors.toml"}"\n{drones}'
                          "[flight]\nheight = 0.5\ntakeoff_duration = 1.0\ntakeoff_stagger = 0.05\nland_speed = 0.5\n")
         assert cli.main(["status", "--fleet", str(fleet)]) == 0
         out = capsys.readouterr().out

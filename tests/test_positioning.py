@@ -9,6 +9,7 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 
+from groundstation.link import FlightState, Telemetry
 from groundstation.positioning import AnchorLayout, DroneState, PositionTracker, draw_layout
 from groundstation.safety import FenceConfig
 from runtime.spec import SpecError
@@ -107,12 +108,11 @@ def test_attach_follows_a_links_telemetry_and_battery_fraction() -> None:
 
 
 def test_tracker_with_the_real_telemetry_type() -> None:
-    link_mod = pytest.importorskip("groundstation.link")
     tr = PositionTracker()
-    sample = link_mod.Telemetry(t=1.0, position=(1.0, 0.0, 0.3), velocity=(0.0, 0.0, 0.0), battery=3.7,
-                                link_quality=0.9, flight_state=link_mod.FlightState.FLYING)
+    sample = Telemetry(t=1.0, position=(1.0, 0.0, 0.3), velocity=(0.0, 0.0, 0.0), battery=3.7,
+                       link_quality=0.9, flight_state=FlightState.FLYING)
     s = tr.update("x", sample)
-    assert s.flight_state is link_mod.FlightState.FLYING and s.link_quality == 0.9
+    assert s.flight_state is FlightState.FLYING and s.link_quality == 0.9
 
 
 # -- anchors -------------------------------------------------------------------------------------------

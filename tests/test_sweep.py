@@ -11,7 +11,7 @@ import pytest
 from runtime.spec import SpecError
 from training.sweep import SweepConfig, job_config
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def _sweep_file(tmp_path: Path, extra: str = "", n_pursuers: str = "[1, 2]") -> Path:
@@ -87,7 +87,14 @@ def test_tiny_sweep_on_a_local_ray_instance(tmp_path):
     assert "on Ray at local" in r.stdout
 
 
-@pytest.mark.parametrize("path", sorted(Path("configs").glob("sweep*.toml")), ids=lambda p: p.name)
+SHIPPED_SWEEPS = sorted((ROOT / "configs").glob("sweep*.toml"))
+
+
+def test_the_shipped_sweep_files_are_found():
+    assert SHIPPED_SWEEPS, f"no sweep*.toml in {ROOT / 'configs'}: the test below would check nothing"
+
+
+@pytest.mark.parametrize("path", SHIPPED_SWEEPS, ids=lambda p: p.name)
 def test_shipped_sweep_files_build_every_job(path):
     sweep = SweepConfig.from_toml(path)
     assert [n for n, _ in sweep.jobs()] == [2, 3, 4, 5, 6]
