@@ -163,9 +163,11 @@ def obstacles_from_fence(fence: FenceConfig, spec: SwarmSpec) -> np.ndarray:
 
 
 def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str | None = None,
-        stop: threading.Event | None = None, echo: Callable[[str], None] = print,
+        stop: threading.Event | None = None, echo: Callable[[str], None] | None = None,
         separation: SeparationConfig = SeparationConfig()) -> dict[str, Any]:
-    """Fly the fleet's mission for ``duration`` s (or until ``stop`` is set), then land everyone."""
+    """Fly the fleet's mission for ``duration`` s (or until ``stop`` is set), then land everyone. ``echo`` gets
+    the progress lines (the roles, who flies); by default they are logged, and a CLI passes ``print``."""
+    echo = echo or (lambda line: log.info("%s", line))
     spec = SwarmSpec.from_toml(fleet.spec) if fleet.spec else SwarmSpec()
     manifest = read_manifest(fleet.models)
     fence = FenceConfig.from_toml(fleet.fence)

@@ -73,6 +73,7 @@ def test_tiny_sweep_on_local_processes(tmp_path):
     assert (tmp_path / "runs" / "np2_s0" / "actors.pt").is_file()
     assert (tmp_path / "s.md").read_text().count("\n| ") == 3
     assert "| 2 |" in r.stdout
+    assert "done: n_pursuers=1 seed=0: 40 env steps" in r.stdout  # the CLI prints what run_local echoes
 
 
 def test_tiny_sweep_on_a_local_ray_instance(tmp_path):

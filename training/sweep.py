@@ -25,13 +25,14 @@ written when every job is done.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from runtime.spec import SpecError, load_toml
 from training.config import ExperimentConfig, TrainConfig
@@ -139,19 +140,26 @@ def _job_args(sweep: SweepConfig, n: int, s: int) -> tuple[dict[str, Any], str, 
             resume)
 
 
-def run_local(sweep: SweepConfig, workers: int) -> list[dict[str, Any]]:
+def _log_info(line: str) -> None:
+    log.info("%s", line)
+
+
+def run_local(sweep: SweepConfig, workers: int, echo: Callable[[str], None] = _log_info) -> list[dict[str, Any]]:
+    """Every job of ``sweep`` on ``workers`` local processes; ``echo`` gets one line per finished job."""
     results = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
         futs = {pool.submit(run_job, *_job_args(sweep, n, s)): (n, s) for n, s in sweep.jobs()}
         for fut in as_completed(futs):
             n, s = futs[fut]
             res = fut.result()
-            print(f"done: n_pursuers={n} seed={s}: " + _one_line(res), flush=True)
+            echo(f"done: n_pursuers={n} seed={s}: " + _one_line(res))
             results.append(res)
     return results
 
 
-def run_ray(sweep: SweepConfig, address: str, cpus_per_job: float = 1.0) -> list[dict[str, Any]]:
+def run_ray(sweep: SweepConfig, address: str, cpus_per_job: float = 1.0,
+            echo: Callable[[str], None] = _log_info) -> list[dict[str, Any]]:
+    """Every job of ``sweep`` as a Ray task at ``address`` ("local" starts one); ``echo`` as in ``run_local``."""
     try:
         import ray
     except ImportError:
@@ -171,7 +179,7 @@ def run_ray(sweep: SweepConfig, address: str, cpus_per_job: float = 1.0) -> list
             ready, pending = ray.wait(pending, num_returns=1)
             res = ray.get(ready[0])
             n, s = refs[ready[0]]
-            print(f"done: n_pursuers={n} seed={s}: " + _one_line(res), flush=True)
+            echo(f"done: n_pursuers={n} seed={s}: " + _one_line(res))
             results.append(res)
         return results
     finally:
@@ -264,7 +272,8 @@ def cmd_sweep(args: Any) -> int:
     print(f"sweep: {len(sweep.jobs())} jobs (n_pursuers {list(sweep.n_pursuers)} x seeds {list(sweep.seeds)}) "
           f"into {sweep.out}, " + (f"on Ray at {args.ray}" if args.ray else f"{args.workers} local workers"),
           flush=True)
-    results = run_ray(sweep, args.ray) if args.ray else run_local(sweep, args.workers)
+    echo = functools.partial(print, flush=True)  # one line per finished job, to the user
+    results = run_ray(sweep, args.ray, echo=echo) if args.ray else run_local(sweep, args.workers, echo=echo)
     doc, md = summarize_sweep(sweep, results)
     doc["wall_s"] = round(time.perf_counter() - t0, 2)
     write_text_atomic(sweep.out / "sweep.json", json.dumps(doc, indent=2, sort_keys=True) + "\n")
