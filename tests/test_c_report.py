@@ -25,7 +25,7 @@ pytestmark = pytest.mark.skipif(
 
 HIDDEN = (32, 32)
 N_OBS = 1000
-NUMBER = re.compile(r"-?\d[\d,]*(?:\.\d+)?(?:e[-+]?\d+)?|nan|inf", re.IGNORECASE)
+NUMBER = re.compile(r"\b(?:\d[\d,]*(?:\.\d+)?(?:e[-+]?\d+)?|nan|inf)\b", re.IGNORECASE)
 
 
 def _actor_onnx(path: Path, spec: SwarmSpec, role: Role, seed: int) -> tuple[Path, int]:
@@ -81,7 +81,7 @@ def test_c_report_sections_and_figures(tmp_path, capsys, quant, tol):
                    "  cycles, zero wait states", "  flash wait states (ART model", "  per inference with wait states: ",
                    "  swarm_policy_init (once): ", "  by class (instructions, cycles): "):
         assert sum(line.startswith(needle) for line in lines[1:]) == 1, f"{needle!r} is not one line of:\n{report}"
-    numbers = [_num(n) for n in NUMBER.findall(report)]
+    numbers = [_num(n) for n in NUMBER.findall("\n".join(lines[2:]))]  # after the model's line (its path)
     assert numbers and all(math.isfinite(n) for n in numbers), report
 
     head = lines[1]
