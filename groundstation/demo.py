@@ -369,9 +369,10 @@ def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacl
         _, pols = load_models(opts.models, spec=spec, engine=opts.engine)
         policies = {p.agent_id: p for p in pols}
         session.assign_roles()
+        # built on the ground: numba compiles the encoders and every actor runs once before any drone flies
+        pilot = AgentPilot(session, spec, policies, obstacles, on_step=metrics)
         session.takeoff()
         t_ready = time.monotonic()
-        pilot = AgentPilot(session, spec, policies, obstacles, on_step=metrics)
         with pilot:
             # the mission clock starts when every runtime flies its actor (a cold start only delays it)
             t_mission = pilot.begin_mission()

@@ -188,9 +188,11 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
             _, pols = load_models(fleet.models, spec=spec, engine=fleet.engine)
             session.assign_roles()
             echo(f"roles: {session.assignment.by_drone}")
+            # built on the ground: numba compiles the encoders and every actor runs once before any drone flies
+            pilot = AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles)
             session.takeoff()
             echo(f"flying: {', '.join(session.flying())}")
-            with AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles) as pilot:
+            with pilot:
                 pilot.begin_mission()  # when every runtime has its first command: a slow start only waits
                 end = time.monotonic() + duration
                 while time.monotonic() < end and session.flying() and not stop.is_set():

@@ -120,6 +120,7 @@ class AgentPilot:
                              AgentConfig(phase_s=phases[i], lead_s=min(0.002, self.period / 4)),
                              on_fault=self._on_fault)
                        for i, a in enumerate(self.agent_ids)]
+        self._warm_up(policies)
         self.on_step = on_step
         self.fault_ticks = fault_ticks
         self._fault_run = [0] * n
@@ -139,6 +140,18 @@ class AgentPilot:
         """Control periods of the pilot's own loop (metrics and broadcasts for vacant actors)."""
 
     # ---- lifecycle ---------------------------------------------------------------------------------
+
+    def _warm_up(self, policies: Mapping[str, OnnxPolicy]) -> None:
+        """Every actor once on its agent's (zero) observation: onnxruntime's first call allocates and plans, and
+        a compiled engine builds its buffers. Construct the pilot on the ground, before the takeoff: the
+        agents' constructors compile numba's kernels too, and either may hold the interpreter for seconds on a
+        cold, busy machine. Faults found here are the runtime's to report in flight, not here."""
+        for agent in self.agents:
+            try:
+                agent.policy.act(agent.obs, out=agent.action)
+            except Exception as exc:  # the agent's own fault handling reports it at its first tick
+                log.warning("%s: warm-up run failed: %s", agent.agent_id, exc)
+            agent.action[:] = 0.0
 
     def start(self) -> "AgentPilot":
         self._t0 = time.monotonic() + 0.05

@@ -90,3 +90,37 @@ def test_no_separation_is_for_comparison_only(capsys):
     with pytest.raises(SystemExit):
         cli.main(["demo", "--help"])
     assert "comparison only" in " ".join(capsys.readouterr().out.split())
+
+
+def _busy_machine(n: int) -> list[subprocess.Popen]:
+    """``n`` processes that keep a core busy each (Debian's stress-ng where installed, else a Python spin)."""
+    import shutil
+    if shutil.which("stress-ng"):
+        return [subprocess.Popen(["stress-ng", "--cpu", str(n), "--quiet"], stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL, start_new_session=True)]
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True) for _ in range(n)]
+
+
+def test_a_cold_start_on_a_busy_machine_delays_the_mission_and_faults_no_drone(tmp_path):
+    """The first run on a fresh machine: numba compiles every kernel (empty NUMBA_CACHE_DIR), onnxruntime makes
+    its first calls and both cores are busy. The mission clock waits for every runtime's first command, so no
+    healthy drone is landed for "no command from its runtime"."""
+    import os
+    import signal
+    models = write_models(tmp_path / "models")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))  # cold: nothing compiled yet
+    busy = _busy_machine(2)
+    try:
+        r = subprocess.run([sys.executable, "-m", "groundstation.cli", "demo", "--duration", "2",
+                            "--models", str(models), "--json", str(tmp_path / "demo.json"), "--seed", "3"],
+                           capture_output=True, text=True, timeout=300, env=env)
+    finally:
+        for p in busy:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert r.returncode == 0, r.stderr[-3000:]
+    res = json.loads((tmp_path / "demo.json").read_text())
+    faults = [e for e in res["events"] if e["kind"] == "agent_fault"]
+    assert faults == [], faults
+    assert res["final_status"] == {f"cf{i}": "landed" for i in range(12)}
+    assert res["startup_s"] >= 0.0 and res["agents"]["actions"] > 0
