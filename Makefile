@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench install clean
+.PHONY: demo test test-under-load bench install clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,6 +21,14 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# the suite three times in a row while stress-ng keeps both cores busy (Debian: apt-get install stress-ng)
+LOAD_RUNS ?= 3
+test-under-load: $(STAMP)
+	@command -v stress-ng >/dev/null || { echo "test-under-load: stress-ng is not installed: apt-get install stress-ng"; exit 2; }
+	@stress-ng --cpu 2 --quiet & pid=$$!; trap "kill $$pid 2>/dev/null" EXIT INT TERM; \
+	for i in $$(seq $(LOAD_RUNS)); do echo "== run $$i of $(LOAD_RUNS) under stress-ng --cpu 2"; \
+		$(PY) -m pytest -q $(PYTEST_ARGS) || exit 1; done
 
 bench: $(STAMP)
 	$(PY) -m pytest tests/benchmarks -m "slow or not slow" --benchmark-enable --benchmark-columns=min,median,mean,ops,rounds

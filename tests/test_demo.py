@@ -47,7 +47,9 @@ def test_short_demo_flies_loses_a_link_lands_and_reports(tmp_path):
                                                                           if i != 4}
     agents = res["agents"]
     assert agents["actions"] > 0 and agents["faults"] == agents["no_state"]  # no policy faults
-    assert all(v["telemetry_per_s"] > 30 for d, v in res["links"]["per_drone"].items() if d != "cf4")
+    # telemetry every 20 ms (50/s); a loaded machine delivers fewer, a dead link none
+    assert all(v["telemetry_per_s"] > 10 for d, v in res["links"]["per_drone"].items() if d != "cf4"), \
+        res["links"]["per_drone"]
     assert res["links"]["per_drone"]["cf4"]["link_lost"]
     assert "landed 12/12 (1 locked)" in r.stdout and "geofence violations 0" in r.stdout
     rows = [json.loads(line) for line in (out / "flight.jsonl").read_text().splitlines()]
