@@ -80,7 +80,6 @@ def test_a_policy_too_large_for_sram_is_refused_with_the_int8_fix():
 
 
 def test_cli_refuses_ccm_in_one_line_and_writes_nothing(tmp_path, capsys):
-    pytest.importorskip("onnx")
     from firmware_export.cli import main
 
     out = tmp_path / "c"
