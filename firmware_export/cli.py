@@ -13,7 +13,7 @@ from pathlib import Path
 
 from firmware_export.cgen import DEFAULT_WEIGHTS_IN, QUANTS, TANHS, WEIGHTS_IN
 from firmware_export.mlp_graph import CExportError
-from runtime.cliutil import ArgumentParser, EXIT_USAGE, in_file, out_dir, positive_int
+from runtime.cliutil import ArgumentParser, EXIT_USAGE, in_file, nonneg_int, out_dir, positive_int
 from runtime.spec import SpecError
 
 
@@ -75,6 +75,16 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_c)
 
 
+def _run_folder(text: str) -> Path:
+    """An argparse type for ``--run``: a training run folder, or its ``actors.pt`` itself (a folder that does not
+    exist is left to the exporter, whose message says how to train one)."""
+    p = Path(text)
+    if p.exists() and not p.is_dir() and p.suffix != ".pt":
+        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a training run folder; give the folder that "
+                                         f"`swarm-train train --out RUN` wrote (holding actors.pt)")
+    return p
+
+
 def _cmd_onnx(args: argparse.Namespace) -> int:
     try:
         from firmware_export.onnx_export import run_onnx_command
@@ -91,11 +101,12 @@ def add_onnx(sub: argparse._SubParsersAction) -> None:
                        description="Export every actor of a training run (runs/NAME/actors.pt) to ONNX with the "
                                    "spec in its metadata, checked against torch on random and recorded "
                                    "observations.")
-    p.add_argument("--run", required=True, help="training run folder holding actors.pt (runs/NAME)")
+    p.add_argument("--run", required=True, type=_run_folder,
+                   help="training run folder holding actors.pt (runs/NAME)")
     p.add_argument("--out", required=True, type=out_dir, help="models folder to write (models/NAME/)")
     p.add_argument("--random", type=positive_int, default=10_000, help="random observations for the parity check")
     p.add_argument("--recorded", type=positive_int, default=10_000, help="recorded observations for the parity check")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=nonneg_int, default=0, help="seed of the parity check's observations")
     p.set_defaults(func=_cmd_onnx)
 
 

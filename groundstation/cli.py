@@ -9,13 +9,19 @@ import argparse
 import logging
 import math
 import signal
+import socket
 import sys
 import threading
 import time
 
 from groundstation.sim.swarm import DEFAULT_BASE_PORT, SimError, SimSwarm
-from runtime.cliutil import port
-from runtime.spec import ENGINES
+from runtime.cliutil import (EXIT_USAGE, ArgumentParser, check_in_file, int_in, models_dir, nonneg_int, out_file,
+                             out_picture, port, positive_float)
+from runtime.spec import ENGINES, SpecError
+
+
+class UsageError(Exception):
+    """A bad argument or input file found before any drone flies; the message names the option and the fix."""
 
 
 def _add_sim(subparsers: argparse._SubParsersAction) -> None:
@@ -23,15 +29,15 @@ def _add_sim(subparsers: argparse._SubParsersAction) -> None:
         "sim", help="run simulated Crazyflies (CRTP over UDP) for any cflib client",
         description="Start N simulated Crazyflies on UDP ports base-port+i. Connect with cflib as "
                     "udp://HOST:PORT, e.g. SyncCrazyflie('udp://127.0.0.1:19850'). Ctrl-C stops them.")
-    p.add_argument("--drones", type=int, default=1, help="number of drones (default 1)")
+    p.add_argument("--drones", type=nonneg_int, default=1, help="number of drones (default 1)")
     p.add_argument("--base-port", type=port, default=DEFAULT_BASE_PORT,
                    help=f"UDP port of drone 0 (default {DEFAULT_BASE_PORT}, where cflib scans)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the positioning noise (default 0)")
-    p.add_argument("--spacing", type=float, default=0.5, help="distance between start positions [m]")
-    p.add_argument("--duration", type=float, default=None,
+    p.add_argument("--seed", type=nonneg_int, default=0, help="seed of the positioning noise (default 0)")
+    p.add_argument("--spacing", type=positive_float, default=0.5, help="distance between start positions [m]")
+    p.add_argument("--duration", type=positive_float, default=None,
                    help="stop after this many seconds (default: run until Ctrl-C)")
-    p.add_argument("--mavlink", type=int, default=0, metavar="M",
+    p.add_argument("--mavlink", type=nonneg_int, default=0, metavar="M",
                    help="also run M simulated MAVLink vehicles (system ids 1..M) that send to a ground station "
                         "listening on --mavlink-port+i; connect with mavlink:udpin:HOST:PORT (default 0)")
     p.add_argument("--mavlink-port", type=port, default=14550,
@@ -44,16 +50,16 @@ def _add_sim(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run_sim(args: argparse.Namespace) -> int:
-    if args.drones < 0 or args.mavlink < 0 or args.drones + args.mavlink < 1:
-        print("swarm-gs sim: --drones and --mavlink must be >= 0 and at least one drone in all; "
-              "e.g. --drones 3, or --drones 0 --mavlink 1", file=sys.stderr)
-        return 2
-    for name, base, n in (("--base-port", args.base_port, args.drones), ("--mavlink-port", args.mavlink_port,
-                                                                        args.mavlink)):
-        if n and base + n - 1 > 65535:
-            print(f"swarm-gs sim: {name}: {base} + {n} drones passes port 65535; use a base port <= {65536 - n}",
-                  file=sys.stderr)
-            return 2
+    if args.drones + args.mavlink < 1:
+        raise UsageError(f"--drones {args.drones} --mavlink {args.mavlink}: no drone to simulate; give at least one, "
+                         f"e.g. --drones 3, or --drones 0 --mavlink 1")
+    _check_port_range("--base-port", args.base_port, args.drones)
+    _check_port_range("--mavlink-port", args.mavlink_port, args.mavlink)
+    try:
+        socket.getaddrinfo(args.host, None, type=socket.SOCK_DGRAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise UsageError(f"--host: cannot resolve {args.host!r} ({exc}); give an address such as 127.0.0.1 or "
+                         f"0.0.0.0") from None
     sims = None
     vehicles = []
     try:
@@ -94,6 +100,12 @@ def _run_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_port_range(option: str, base: int, n: int) -> None:
+    """Drone i listens on ``base + i``: the last one must still be a port."""
+    if n and base + n - 1 > 65535:
+        raise UsageError(f"{option}: {base} + {n} drones passes port 65535; use a base port <= {65536 - n}")
+
+
 def _stop_sims(sims, vehicles) -> None:
     for vehicle in vehicles:
         vehicle.stop()
@@ -122,15 +134,21 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                     "is printed beside ours), connect through cflib over "
                     "udp://, assign roles, fly the mission with the exported actors, land, and print the paper's "
                     "metrics and link statistics. Ctrl-C lands everyone.")
-    p.add_argument("--duration", type=float, default=d.duration, help=f"mission time [s] (default {d.duration:g})")
-    p.add_argument("--speed", type=float, default=d.speed,
+    p.add_argument("--duration", type=positive_float, default=d.duration,
+                   help=f"mission time [s] (default {d.duration:g})")
+    p.add_argument("--speed", type=positive_float, default=d.speed,
                    help="multiplier on the policies' velocity commands (default 1)")
     p.add_argument("--kill-link", type=_kill_link, default=None, metavar="DRONE@T",
                    help="cut drone DRONE's link (index or id, e.g. 3 or cf3) T s into the mission")
-    p.add_argument("--loss", type=float, default=d.loss, help="probability of losing each datagram (default 0)")
-    p.add_argument("--json", default=None, metavar="PATH", help="write the results to this JSON file")
-    p.add_argument("--log", default=None, metavar="PATH", help="write the flight log (JSON lines) here")
-    p.add_argument("--plot", default=None, metavar="PNG", help="draw the trajectories to this picture")
+    p.add_argument("--loss", type=float, default=d.loss,  # checked in _check_demo (main returns 2)
+                   help="probability of losing each datagram (default 0)")
+    p.add_argument("--telemetry-period-ms", type=int_in(10, 1000, "ms"), default=d.telemetry_period_ms,
+                   metavar="MS", help=f"telemetry period per drone [ms] (default {d.telemetry_period_ms})")
+    p.add_argument("--json", type=out_file, default=None, metavar="PATH", help="write the results to this JSON file")
+    p.add_argument("--log", type=out_file, default=None, metavar="PATH",
+                   help="write the flight log (JSON lines) here")
+    p.add_argument("--plot", type=out_picture, default=None, metavar="PNG",
+                   help="draw the trajectories to this picture (.png, .pdf, .svg, ...)")
     p.add_argument("--models", default=d.models, help=f"models folder from swarm-export onnx (default {d.models})")
     p.add_argument("--engine", choices=ENGINES, default=d.engine,
                    help="how the actors run: onnxruntime (default) or compiled (the same ONNX actors compiled with "
@@ -140,9 +158,11 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                         "were trained on, from their manifest.json; a different one fails preflight)")
     p.add_argument("--fence", default=d.fence, metavar="TOML", help=f"geofence (default {d.fence}); its "
                    "keep-out circles are replaced by the obstacles drawn for the demo")
-    p.add_argument("--anchors", default=d.anchors, metavar="TOML", help=f"LPS anchors (default {d.anchors})")
-    p.add_argument("--flight-config", default=None, metavar="TOML", help="TOML with a [flight] table")
-    p.add_argument("--seed", type=int, default=d.seed, help="obstacles, start positions, noise (default 0)")
+    p.add_argument("--anchors", default=d.anchors, metavar="TOML",
+                   help=f"LPS anchors (default {d.anchors})")
+    p.add_argument("--flight-config", default=None, metavar="TOML",
+                   help="TOML with a [flight] table (and optionally a [separation] table)")
+    p.add_argument("--seed", type=nonneg_int, default=d.seed, help="obstacles, start positions, noise (default 0)")
     p.add_argument("--base-port", type=port, default=None, help="UDP port of drone 0 (default: a free range)")
     _add_no_separation(p)
     p.set_defaults(func=_run_demo)
@@ -153,15 +173,67 @@ def _add_no_separation(p: argparse.ArgumentParser) -> None:
                    help="fly without the separation filter, for comparison only: drones may touch and crash")
 
 
+def _input(option: str, path, load):
+    """``load(path)``, with a missing or unreadable file or a wrong value in it as a ``UsageError`` naming
+    ``option`` (the loaders' messages name the file and the key)."""
+    from runtime.policy import PolicyError
+    try:
+        check_in_file(path)
+    except argparse.ArgumentTypeError as exc:
+        raise UsageError(f"{option}: {exc}") from None
+    try:
+        return load(path)
+    except (SpecError, PolicyError) as exc:
+        raise UsageError(f"{option}: {exc}") from None
+
+
+def _check_demo(args: argparse.Namespace) -> None:
+    """Every input of ``swarm-gs demo`` read and checked before a simulator starts, so that a wrong value is one
+    line naming its option rather than an error after a 30 s flight (``run_demo`` reads them again)."""
+    from groundstation.demo import DemoError, _resolve_drone
+    from groundstation.flight import FlightConfig
+    from groundstation.positioning import AnchorLayout
+    from groundstation.safety import FenceConfig
+    from groundstation.separation import SeparationConfig
+    from runtime.policy import PolicyError, read_manifest
+    from runtime.spec import SwarmSpec, load_toml
+    if not 0.0 <= args.loss < 1.0:
+        raise UsageError(f"--loss: expected a probability in [0, 1), got {args.loss:g}")
+    if args.kill_link is not None and args.kill_link[1] >= args.duration:
+        raise UsageError(f"--kill-link: {args.kill_link[0]}@{args.kill_link[1]:g} is not within the "
+                         f"{args.duration:g} s mission (--duration): give a time below {args.duration:g}")
+    try:
+        manifest = read_manifest(models_dir(args.models))
+    except (PolicyError, argparse.ArgumentTypeError) as exc:
+        raise UsageError(f"--models: {exc}") from None
+    spec = _input("--spec", args.spec, SwarmSpec.from_toml) if args.spec else manifest.spec
+    if args.flight_config:
+        _input("--flight-config", args.flight_config, FlightConfig.from_toml)
+        _input("--flight-config", args.flight_config,
+               lambda p: SeparationConfig.from_dict(load_toml(p).get("separation", {})))
+    fence = _input("--fence", args.fence, FenceConfig.from_toml)
+    _input("--anchors", args.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence))
+    n = spec.n_agents
+    if args.kill_link is not None:
+        try:
+            _resolve_drone(str(args.kill_link[0]), [f"cf{i}" for i in range(n)])
+        except DemoError as exc:
+            raise UsageError(str(exc)) from None
+    if args.base_port is not None:
+        _check_port_range("--base-port", args.base_port, n)
+
+
 def _run_demo(args: argparse.Namespace) -> int:
     from groundstation.demo import DemoError, DemoOptions, format_summary, run_demo
     from groundstation.flight import PreflightError
     from runtime.policy import PolicyError
-    from runtime.spec import SpecError
+    _check_demo(args)
+    path = (lambda p: None if p is None else str(p))
     opts = DemoOptions(duration=args.duration, speed=args.speed, kill_link=args.kill_link, loss=args.loss,
                        models=args.models, engine=args.engine, spec=args.spec, fence=args.fence, anchors=args.anchors,
-                       flight=args.flight_config, seed=args.seed, json_path=args.json, log_path=args.log,
-                       plot_path=args.plot, base_port=args.base_port, separation=not args.no_separation)
+                       flight=args.flight_config, seed=args.seed, json_path=path(args.json), log_path=path(args.log),
+                       plot_path=path(args.plot), base_port=args.base_port,
+                       telemetry_period_ms=args.telemetry_period_ms, separation=not args.no_separation)
     try:
         res = run_demo(opts)
     except (DemoError, PolicyError, SpecError, PreflightError, SimError) as exc:
@@ -182,14 +254,44 @@ def _add_fleet_arg(p: argparse.ArgumentParser) -> None:
                    help="fleet file: drones by URI and team, models, fence (see configs/fleet_example.toml)")
 
 
+def _load_fleet(path: str, flying: bool = False):
+    """The fleet file's fleet and flight tables, checked before any radio opens; with ``flying`` also the
+    separation table and every file it names (models, spec, fence, anchors), which ``fly`` reads again.
+    A wrong one is a ``UsageError`` naming ``--fleet`` and the key."""
+    from groundstation.fleet import FleetConfig, load_separation, obstacles_from_fence
+    from groundstation.positioning import AnchorLayout
+    from groundstation.safety import FenceConfig
+    from runtime.policy import PolicyError, read_manifest
+    from runtime.spec import SwarmSpec
+    fleet, flight = _input("--fleet", path, FleetConfig.from_toml)
+    if not flying:
+        return fleet, flight, None
+    separation = _input("--fleet", path, load_separation)
+    where = f"--fleet {path}: fleet"
+    try:
+        read_manifest(fleet.models)
+    except PolicyError as exc:
+        raise UsageError(f"{where}.models: {exc}") from None
+    spec = _input(f"{where}.spec", fleet.spec, SwarmSpec.from_toml) if fleet.spec else SwarmSpec()
+    fence = _input(f"{where}.fence", fleet.fence, FenceConfig.from_toml)
+    if fleet.anchors:
+        _input(f"{where}.anchors", fleet.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence))
+    try:
+        obstacles_from_fence(fence, spec)
+    except SpecError as exc:
+        raise UsageError(f"{where}.fence {fleet.fence}: {exc}") from None
+    return fleet, flight, separation
+
+
 def _add_fly(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("fly", help="fly real drones (radio:// URIs from a fleet file)",
                               description="Preflight, role assignment, staggered takeoff, the mission with the "
                                           "exported actors, landing. Ctrl-C lands everyone; a second Ctrl-C cuts "
                                           "every motor (emergency stop).")
     _add_fleet_arg(p)
-    p.add_argument("--duration", type=float, default=60.0, help="mission time [s] (default 60)")
-    p.add_argument("--log", default=None, metavar="PATH", help="write the flight log (JSON lines) here")
+    p.add_argument("--duration", type=positive_float, default=60.0, help="mission time [s] (default 60)")
+    p.add_argument("--log", type=out_file, default=None, metavar="PATH",
+                   help="write the flight log (JSON lines) here")
     _add_no_separation(p)
     p.set_defaults(func=_run_fly)
 
@@ -205,7 +307,10 @@ def _fleet_errors():
 def _run_fly(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from groundstation.fleet import FleetConfig, fly, load_separation
+    from groundstation.fleet import fly
+    fleet, flight, separation = _load_fleet(args.fleet, flying=True)
+    if args.no_separation:
+        separation = dataclasses.replace(separation, enabled=False)
     stop = threading.Event()
     presses = []
 
@@ -219,13 +324,10 @@ def _run_fly(args: argparse.Namespace) -> int:
             raise KeyboardInterrupt
 
     try:
-        fleet, flight = FleetConfig.from_toml(args.fleet)
-        separation = load_separation(args.fleet)
-        if args.no_separation:
-            separation = dataclasses.replace(separation, enabled=False)
         previous = signal.signal(signal.SIGINT, on_sigint)
         try:
-            res = fly(fleet, flight, args.duration, args.log, stop, separation=separation)
+            res = fly(fleet, flight, args.duration, None if args.log is None else str(args.log), stop,
+                      separation=separation)
         finally:
             signal.signal(signal.SIGINT, previous)
     except _fleet_errors() as exc:
@@ -247,9 +349,9 @@ def _add_land(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run_land(args: argparse.Namespace) -> int:
-    from groundstation.fleet import FleetConfig, land_fleet
+    from groundstation.fleet import land_fleet
+    fleet, _, _ = _load_fleet(args.fleet)
     try:
-        fleet, _ = FleetConfig.from_toml(args.fleet)
         out = land_fleet(fleet)
     except _fleet_errors() as exc:
         print(f"swarm-gs land: {exc}", file=sys.stderr)
@@ -266,9 +368,9 @@ def _add_status(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run_status(args: argparse.Namespace) -> int:
-    from groundstation.fleet import FleetConfig, fleet_status
+    from groundstation.fleet import fleet_status
+    fleet, _, _ = _load_fleet(args.fleet)
     try:
-        fleet, _ = FleetConfig.from_toml(args.fleet)
         rows = fleet_status(fleet)
     except _fleet_errors() as exc:
         print(f"swarm-gs status: {exc}", file=sys.stderr)
@@ -285,7 +387,7 @@ SUBCOMMANDS = (_add_sim, _add_demo, _add_fly, _add_land, _add_status)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="swarm-gs", description="swarmpursuit ground station")
+    parser = ArgumentParser(prog="swarm-gs", description="swarmpursuit ground station")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     subparsers = parser.add_subparsers(dest="command", required=True)
     for add in SUBCOMMANDS:
@@ -297,7 +399,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return args.func(args)
+    try:
+        return args.func(args)
+    except UsageError as exc:
+        print(f"swarm-gs {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:  # a disk, socket or permission failure after the checks: one line, no traceback
+        print(f"swarm-gs {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

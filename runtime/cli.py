@@ -19,9 +19,9 @@ import sys
 import time
 from pathlib import Path
 
-from runtime.cliutil import (ArgumentParser, float_in, EXIT_USAGE, float_list, json_safe, nonneg_float,
-                             nonneg_int, out_file, out_prefix, positive_float, probability, write_json_atomic,
-                             write_text_atomic)
+from runtime.cliutil import (ArgumentParser, float_in, EXIT_USAGE, float_list, json_safe, models_dir,
+                             nonneg_float, nonneg_int, out_file, out_prefix, positive_float, probability,
+                             write_json_atomic, write_text_atomic)
 from runtime.comms import CommConfig
 from runtime.spec import ENGINES, SpecError
 
@@ -44,7 +44,7 @@ _floats = float_list(nonneg_float, "numbers >= 0", "0,0.2,0.5")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--models", required=True, type=Path,
+    p.add_argument("--models", required=True, type=models_dir,
                    help="models folder written by `swarm-export onnx` (manifest.json + one ONNX actor per agent)")
     p.add_argument("--rate", type=_positive, default=None,
                    help="agents' control rate [Hz] (default: 1 / spec control period; the world steps at that)")

@@ -62,16 +62,29 @@ def int_at_least(low: int, unit: str = "") -> Callable[[str], int]:
     return parse
 
 
+def int_in(low: int, high: int, unit: str = "") -> Callable[[str], int]:
+    """An argparse type: a whole number in ``low..high``."""
+    what = f"a whole number in {low}..{high}" + (f" ({unit})" if unit else "")
+
+    def parse(text: str) -> int:
+        v = _number(text, int, what)
+        if not low <= v <= high:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return v
+    parse.__name__ = f"int in {low}..{high}"
+    return parse
+
+
 positive_int = int_at_least(1)
 nonneg_int = int_at_least(0)
 
 
-def float_in(low: float = -math.inf, high: float = math.inf, *, low_open: bool = False, unit: str = "",
-             allow_inf: bool = False) -> Callable[[str], float]:
-    """An argparse type: a finite float in [low, high] (``(low, high]`` with ``low_open``); ``allow_inf``
-    also takes ``inf`` (e.g. an unlimited bandwidth)."""
+def float_in(low: float = -math.inf, high: float = math.inf, *, low_open: bool = False, high_open: bool = False,
+             unit: str = "", allow_inf: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite float in [low, high] (``(low, high]`` with ``low_open``, ``[low, high)`` with
+    ``high_open``); ``allow_inf`` also takes ``inf`` (e.g. an unlimited bandwidth)."""
     bounds = (f"> {low:g}" if low_open else f">= {low:g}") if high == math.inf else \
-        (f"in ({low:g}, {high:g}]" if low_open else f"in [{low:g}, {high:g}]")
+        f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
     what = ("a number " if allow_inf else "a finite number ") + bounds + (f" ({unit})" if unit else "")
 
     def parse(text: str) -> float:
@@ -79,7 +92,7 @@ def float_in(low: float = -math.inf, high: float = math.inf, *, low_open: bool =
             v = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        ok = (v > low if low_open else v >= low) and v <= high and not math.isnan(v)
+        ok = (v > low if low_open else v >= low) and (v < high if high_open else v <= high) and not math.isnan(v)
         if not ok or (math.isinf(v) and not allow_inf):
             raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
         return v
@@ -184,9 +197,33 @@ def check_in_file(path: str | Path) -> Path:
     return p
 
 
+def models_dir(text: str) -> Path:
+    """An argparse type for a models folder of ``swarm-export onnx``: a file there is an error; a missing folder
+    or one without a manifest is left to ``runtime.policy.read_manifest``, whose message says how to export."""
+    p = Path(text)
+    if p.exists() and not p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a models folder; give the folder that "
+                                         f"`swarm-export onnx --out DIR` wrote (manifest.json + one ONNX actor each)")
+    return p
+
+
 def out_file(text: str) -> Path:
     """An argparse type for an output file (``check_out_file``)."""
     return check_out_file(text)
+
+
+PICTURE_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".tif", ".tiff", ".webp", ".eps", ".ps")
+"""File types matplotlib's Agg backend writes (``savefig`` picks the format from the suffix)."""
+
+
+def out_picture(text: str) -> Path:
+    """An argparse type for a picture to draw (``check_out_file`` and a suffix in ``PICTURE_SUFFIXES``): a
+    wrong suffix would fail in ``savefig`` only after the run it draws."""
+    p = check_out_file(text)
+    if p.suffix.lower() not in PICTURE_SUFFIXES:
+        raise argparse.ArgumentTypeError(f"cannot draw {text!r}: unknown picture type {p.suffix or '(no suffix)'!r}; "
+                                         f"end the name in one of {', '.join(PICTURE_SUFFIXES)}")
+    return p
 
 
 def out_dir(text: str) -> Path:

@@ -415,13 +415,18 @@ def _layout(spec: SwarmSpec, role: Role) -> ObsLayout:
 
 def load_toml(path: str | Path) -> dict[str, Any]:
     p = Path(path)
+    if p.is_dir():
+        raise SpecError(f"config file {str(p)!r} is a folder: give the TOML file in it")
     if not p.is_file():
         raise SpecError(f"config file {str(p)!r} does not exist: check the path")
     try:
         with p.open("rb") as fh:
             return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SpecError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise SpecError(f"config file {str(p)!r} cannot be read ({exc.strerror or exc}): check its permissions") \
+            from None
 
 
 def from_mapping(cls: type, data: Mapping[str, Any], where: str, base: Any = None) -> Any:

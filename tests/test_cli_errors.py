@@ -19,13 +19,26 @@ CONFIG = str(ROOT / "configs" / "role_based.toml")
 
 
 @pytest.fixture
-def paths(tmp_path):
-    """A file (``FILE``), a folder (``DIR``), a broken TOML (``BAD``) and a missing path (``NONE``)."""
+def paths(tmp_path, monkeypatch):
+    """A file (``FILE``), a folder (``DIR``), a broken TOML (``BAD``), a missing path (``NONE``), a file that is
+    not UTF-8 (``BINTOML``) and config files with one wrong key each (``*KEY``, ``FLEETMODELS``)."""
+    monkeypatch.chdir(ROOT)  # the commands' defaults (configs/..., models/...) are relative to the repository
     (tmp_path / "afile").write_text("x\n")
     (tmp_path / "adir").mkdir()
     (tmp_path / "bad.toml").write_text("not = [toml\n")
+    (tmp_path / "bin.toml").write_bytes(b"\xff\xfe[spec]\n")
+    (tmp_path / "fence_key.toml").write_text("[fence]\nmarginn = 0.1\n")
+    (tmp_path / "sep_key.toml").write_text("[separation]\nmin_dist = 0.5\n")
+    (tmp_path / "train_key.toml").write_text("[train]\nstepz = 5\n")
+    (tmp_path / "fleet_key.toml").write_text("[fleet]\ntelemetry_period = 20\n")
+    (tmp_path / "fleet_models.toml").write_text(
+        f'[fleet]\nmodels = "{tmp_path / "adir"}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
+        '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
     return {"FILE": str(tmp_path / "afile"), "DIR": str(tmp_path / "adir"), "BAD": str(tmp_path / "bad.toml"),
-            "NONE": str(tmp_path / "none"), "TMP": str(tmp_path)}
+            "NONE": str(tmp_path / "none"), "TMP": str(tmp_path), "BINTOML": str(tmp_path / "bin.toml"),
+            "FENCEKEY": str(tmp_path / "fence_key.toml"), "SEPKEY": str(tmp_path / "sep_key.toml"),
+            "TRAINKEY": str(tmp_path / "train_key.toml"), "FLEETKEY": str(tmp_path / "fleet_key.toml"),
+            "FLEETMODELS": str(tmp_path / "fleet_models.toml")}
 
 
 def _run(module: str, argv: list[str], capsys) -> tuple[int, str]:
@@ -95,11 +108,61 @@ CASES = [
     ("firmware_export.cli", "c --model DIR --out TMP/c", ["DIR"], "TMP/c"),
     ("firmware_export.cli", "onnx --run DIR --out FILE", ["--out", "is a file"], None),
     ("firmware_export.cli", "onnx --run DIR --out TMP/o --random 0", ["--random", "'0'"], "TMP/o"),
+    ("firmware_export.cli", "onnx --run FILE --out TMP/o", ["--run", "is a file", "swarm-train train"], "TMP/o"),
+    ("firmware_export.cli", "onnx --run DIR --out TMP/o --seed -1", ["--seed", "'-1'"], "TMP/o"),
+    ("runtime.cli", "run --models FILE", ["--models", "is a file", "swarm-export onnx"], None),
+    ("training.cli", "train --config TRAINKEY --out TMP/r", ["TRAINKEY: train.stepz", "valid keys"], "TMP/r"),
+    ("training.cli", "train --config C --out TMP/r --seed -1", ["train.seed", ">= 0", "-1"], "TMP/r"),
+    ("training.cli", "evaluate --config BINTOML --episodes 1", ["BINTOML", "not valid TOML"], None),
+    ("training.cli", "evaluate --plot TMP/e.txt --episodes 1", ["--plot", "'.txt'", ".png"], "TMP/e.txt"),
+    ("training.cli", "plot --out TMP/p.txt", ["--out", "'.txt'", ".png"], "TMP/p.txt"),
+    # swarm-gs: every one fails before a simulator starts (a demo that passed its checks would fly for 30 s)
+    ("groundstation.cli", "sim --base-port 70000", ["--base-port", "'70000'", "1..65535"], None),
+    ("groundstation.cli", "sim --drones 12 --base-port 65530", ["--base-port", "65524"], None),
+    ("groundstation.cli", "sim --drones -1", ["--drones", "'-1'", ">= 0"], None),
+    ("groundstation.cli", "sim --drones 0", ["--drones 0", "at least one"], None),
+    ("groundstation.cli", "sim --spacing 0", ["--spacing", "'0'", "> 0"], None),
+    ("groundstation.cli", "sim --duration inf", ["--duration", "'inf'", "finite"], None),
+    ("groundstation.cli", "sim --seed -1", ["--seed", "'-1'"], None),
+    ("groundstation.cli", "sim --host 999.1.1.1", ["--host", "'999.1.1.1'", "127.0.0.1"], None),
+    ("groundstation.cli", "demo --base-port -1", ["--base-port", "'-1'", "1..65535"], None),
+    ("groundstation.cli", "demo --models M --base-port 65530", ["--base-port", "12 drones", "65524"], None),
+    ("groundstation.cli", "demo --models M --json FILE/x.json", ["--json", "is a file"], "FILE/x.json"),
+    ("groundstation.cli", "demo --models M --json DIR", ["--json", "is a folder"], None),
+    ("groundstation.cli", "demo --models M --log FILE/f.jsonl", ["--log", "is a file"], "FILE/f.jsonl"),
+    ("groundstation.cli", "demo --models M --plot TMP/p.txt", ["--plot", "'.txt'", ".png"], "TMP/p.txt"),
+    ("groundstation.cli", "demo --models M --duration 0", ["--duration", "'0'", "> 0"], None),
+    ("groundstation.cli", "demo --models M --duration nan", ["--duration", "'nan'"], None),
+    ("groundstation.cli", "demo --models M --speed -1", ["--speed", "'-1'", "> 0"], None),
+    ("groundstation.cli", "demo --models M --loss 1", ["--loss", "[0, 1)", "got 1"], None),
+    ("groundstation.cli", "demo --models M --seed -1", ["--seed", "'-1'"], None),
+    ("groundstation.cli", "demo --models M --telemetry-period-ms 5", ["--telemetry-period-ms", "'5'", "10..1000"],
+     None),
+    ("groundstation.cli", "demo --models M --kill-link 3@40", ["--kill-link", "3@40", "--duration"], None),
+    ("groundstation.cli", "demo --models M --kill-link cf99@1", ["--kill-link", "'cf99'", "cf0"], None),
+    ("groundstation.cli", "demo --kill-link 3", ["--kill-link", "DRONE@SECONDS"], None),
+    ("groundstation.cli", "demo --models FILE", ["--models", "is a file", "swarm-export onnx"], None),
+    ("groundstation.cli", "demo --models DIR", ["--models", "manifest.json", "swarm-export onnx"], None),
+    ("groundstation.cli", "demo --models M --engine gpu", ["--engine", "'gpu'"], None),
+    ("groundstation.cli", "demo --models M --fence NONE", ["--fence", "NONE", "does not exist"], None),
+    ("groundstation.cli", "demo --models M --fence FENCEKEY", ["--fence", "fence.marginn", "valid keys"], None),
+    ("groundstation.cli", "demo --models M --anchors BAD", ["--anchors", "not valid TOML"], None),
+    ("groundstation.cli", "demo --models M --flight-config SEPKEY", ["--flight-config", "separation.min_dist",
+                                                                     "valid keys"], None),
+    ("groundstation.cli", "demo --models M --flight-config DIR", ["--flight-config", "is a folder"], None),
+    ("groundstation.cli", "demo --models M --spec BINTOML", ["--spec", "not valid TOML"], None),
+    ("groundstation.cli", "fly --fleet NONE", ["--fleet", "does not exist"], None),
+    ("groundstation.cli", "fly --fleet NONE --duration 0", ["--duration", "'0'"], None),
+    ("groundstation.cli", "fly --fleet FLEETKEY", ["--fleet", "fleet.telemetry_period", "valid keys"], None),
+    ("groundstation.cli", "fly --fleet FLEETMODELS", ["--fleet", "fleet.models", "manifest.json"], None),
+    ("groundstation.cli", "fly --fleet BAD --log FILE/f.jsonl", ["--log", "is a file"], "FILE/f.jsonl"),
+    ("groundstation.cli", "status --fleet DIR", ["--fleet", "is a folder"], None),
+    ("groundstation.cli", "land --fleet BAD", ["--fleet", "not valid TOML"], None),
 ]
 
 
 def _fill(text: str, paths: dict) -> str:
-    for key in ("FILE", "DIR", "BAD", "NONE", "TMP"):
+    for key in sorted(paths, key=len, reverse=True):  # FLEETMODELS before any shorter name
         text = text.replace(key, paths[key])
     return text
 
@@ -123,6 +186,15 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(module, argv, needles, 
 
 def test_the_types_take_what_they_should():
     assert cliutil.probability("0") == 0.0 and cliutil.probability("1") == 1.0
+    assert cliutil.float_in(0.0, 1.0, high_open=True)("0.999") == 0.999
+    assert cliutil.int_in(10, 1000)("10") == 10 and cliutil.int_in(10, 1000)("1000") == 1000
+    assert cliutil.out_picture("x.PNG").name == "x.PNG"
+    for bad in ("1", "1.5", "nan"):
+        with pytest.raises(argparse.ArgumentTypeError, match=r"\[0, 1\)"):
+            cliutil.float_in(0.0, 1.0, high_open=True)(bad)
+    for bad in ("9", "1001", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="10..1000"):
+            cliutil.int_in(10, 1000)(bad)
     assert cliutil.float_in(0.0, low_open=True, allow_inf=True)("inf") == math.inf
     assert cliutil.port("1") == 1 and cliutil.port("65535") == 65535
     assert cliutil.float_list(cliutil.probability, "p", "0,1")("0, 0.5") == [0.0, 0.5]

@@ -12,7 +12,7 @@ import logging
 import sys
 from typing import Any, Callable
 
-from runtime.cliutil import ArgumentParser, check_out_dir, check_out_file, positive_int
+from runtime.cliutil import ArgumentParser, check_out_dir, check_out_file, out_picture, positive_int
 from runtime.spec import SpecError
 
 DEFAULT_CONFIG = "configs/role_based.toml"
@@ -247,12 +247,12 @@ def check_outputs(args: argparse.Namespace) -> None:
         path = getattr(args, name, None)
         if isinstance(path, str):
             try:
-                check_out_file(path)
+                (out_picture if name == "plot" else check_out_file)(path)
             except argparse.ArgumentTypeError as exc:
                 raise UsageError(f"--{name}: {exc}") from None
     if args.command == "plot" and args.out:  # a folder with --run, else the PNG
         try:
-            (check_out_dir if args.run else check_out_file)(args.out)
+            (check_out_dir if args.run else out_picture)(args.out)
         except argparse.ArgumentTypeError as exc:
             raise UsageError(f"--out: {exc}") from None
 

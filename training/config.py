@@ -12,6 +12,7 @@ steps = 200000
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -185,7 +186,7 @@ class TrainConfig:
                      "checkpoint_every", "threads", "noise_decay_steps", "policy_delay"):
             if getattr(self, name) < 1:
                 raise SpecError(f"train.{name}: must be >= 1, got {getattr(self, name)!r}")
-        for name in ("warmup_steps", "updates_per_round"):
+        for name in ("seed", "warmup_steps", "updates_per_round"):  # numpy's generators take no negative seed
             if getattr(self, name) < 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 < self.gamma <= 1.0:
@@ -241,7 +242,18 @@ class ExperimentConfig:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "ExperimentConfig":
-        return from_mapping(cls, load_toml(path), Path(path).name)
+        """The experiment in TOML file ``path``; a wrong key or value is a ``SpecError`` that starts with the
+        file and names the key as its table spells it (``PATH: train.stepz: unknown key; valid keys are ...``)."""
+        doc = load_toml(path)
+        top = "<top>"  # from_mapping's prefix of top-level keys: dropped, the message starts with the path
+        try:
+            return from_mapping(cls, doc, top)
+        except SpecError as exc:
+            msg = str(exc)
+            msg = msg[len(top) + 1:] if msg.startswith(top + ".") else msg.replace(top, "the file's top level")
+            key, colon, rest = msg.partition(": ")  # a table's own checks name it again: train.train.seed
+            msg = re.sub(r"(?<![\w\[])(\w+)\.\1(?![\w])", r"\1", key) + colon + rest
+            raise SpecError(f"{path}: {msg}") from None
 
     def to_dict(self) -> dict[str, Any]:
         import dataclasses
