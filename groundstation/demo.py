@@ -1,6 +1,7 @@
 """``swarm-gs demo``: the whole stack against 12 simulated Crazyflies.
 
-Twelve simulated Crazyflies (``groundstation.sim.SimSwarm``: CRTP over UDP) are connected through unmodified
+Twelve simulated Crazyflies (``groundstation.sim.SimSwarm``: CRTP over UDP; in a process of their own,
+``groundstation.sim.remote.SimProcess``, unless ``sim_in_process``) are connected through unmodified
 cflib (``udp://`` URIs, ``CflibLink``); 10 form the pursuer team (pursuer and scout actors) and 2 fly the
 evader actors. The arena's three obstacles are drawn from the spec with the seed (``runtime.world``) and
 become keep-out circles of the fence (the simulator has no physical obstacles, so the fence is what keeps
@@ -48,6 +49,7 @@ from groundstation.positioning import AnchorLayout
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, KeepOut, in_safe_set
 from groundstation.separation import SeparationConfig
+from groundstation.sim.remote import SimProcess
 from groundstation.sim.swarm import SimSwarm, free_base_port
 from runtime.cliutil import json_safe, write_text_atomic
 from runtime.metrics import MetricsAccumulator
@@ -107,6 +109,10 @@ class DemoOptions:
     separation: bool = True
     """False: fly without the separation filter (``--no-separation``), for comparisons only. The
     ``[separation]`` table of ``flight`` (when given) sets the filter's parameters."""
+    sim_in_process: bool = False
+    """True: the simulated Crazyflies in the ground station's interpreter (``--sim-in-process``; they then share
+    its GIL, and its stalls pause their world). Default: a process of their own (``SimProcess``), as real drones
+    are, talking CRTP over UDP."""
 
 
 # ---- setup ---------------------------------------------------------------------------------------
@@ -318,7 +324,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     pairs = PairMonitor(separation.min_distance, 2 * max(spec.per_agent("radius")))
     t_start = time.monotonic()
     result: dict[str, Any] = {}
-    with SimSwarm(n, base_port=base, seed=opts.seed, start_positions=starts, latency_probe=True) as sims:
+    sim_cls = SimSwarm if opts.sim_in_process else SimProcess
+    with sim_cls(n, base_port=base, seed=opts.seed, start_positions=starts, latency_probe=True) as sims:
         relay = LossyRelay([base + i for i in range(n)], 0.0, opts.seed) if opts.loss > 0 else None
         uris = sims.uris if relay is None else [f"udp://127.0.0.1:{p}" for p in relay.ports]
         links = []
@@ -335,7 +342,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
                 _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result, pairs)
             except KeyboardInterrupt:
                 _wait_on_ground(sims, 4.0)
-                on_ground = sum(1 for i in range(n) if _on_ground(sims.truth(i)))
+                on_ground = sum(1 for tr in sims.truths() if _on_ground(tr))
                 raise DemoInterrupted({d: s.value for d, s in session.statuses().items()}, on_ground) from None
             # session exit landed everyone it can reach; a drone without a link comes down on its watchdog
             _wait_on_ground(sims, 4.0)
@@ -360,7 +367,7 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     return result
 
 
-def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacles, metrics, kill, result,
+def _fly(opts, spec, session: FlightSession, sims: "SimSwarm | SimProcess", links, ids, obstacles, metrics, kill, result,
          pairs: "PairMonitor") -> None:
     """Preflight to landing (the session lands everyone on the way out, whatever happens)."""
     manifest_hash = read_manifest(opts.models).spec.hash
@@ -386,7 +393,7 @@ def _fly(opts, spec, session: FlightSession, sims: SimSwarm, links, ids, obstacl
                     result["kill_link_at"] = time.monotonic()
                 if not session.flying():
                     break
-                pairs.update([sims.truth(i) for i in range(sims.n)])
+                pairs.update(sims.truths())
                 time.sleep(0.01)
         t_end = time.monotonic()
         sent1 = [link.stats() for link in links]
@@ -423,7 +430,7 @@ class PairMonitor:
         self.samples += 1
 
 
-def _separation_results(session: FlightSession, sims: SimSwarm, pairs: PairMonitor) -> dict:
+def _separation_results(session: FlightSession, sims: "SimSwarm | SimProcess", pairs: PairMonitor) -> dict:
     return {
         "separation": session.separation_stats(),
         "drone_contacts": sims.drone_contacts,  # two drones that touched: both crashed (motors off, locked)
@@ -440,17 +447,17 @@ def _on_ground(truth) -> bool:
     return truth.position[2] <= LANDED_Z and not truth.motors_on
 
 
-def _wait_on_ground(sims: SimSwarm, timeout: float) -> None:
+def _wait_on_ground(sims: "SimSwarm | SimProcess", timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if all(not sims.truth(i).motors_on for i in range(sims.n)):
+        if all(not tr.motors_on for tr in sims.truths()):
             return
         time.sleep(0.05)
 
 
-def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: EpisodeMetrics, pilot: AgentPilot,
+def _results(opts, spec, session: FlightSession, sims: "SimSwarm | SimProcess", metrics: EpisodeMetrics, pilot: AgentPilot,
              ids, sent0, sent1, t_mission, t_end, t_start, t_connected, kill, kill_at, relay) -> dict[str, Any]:
-    truth = [sims.truth(i) for i in range(sims.n)]
+    truth = sims.truths()
     landed = sum(1 for tr in truth if _on_ground(tr))
     lat = np.array(session.latencies) * 1e3
     e2e = np.array(sims.latency_samples()) * 1e3
@@ -506,6 +513,7 @@ def _results(opts, spec, session: FlightSession, sims: SimSwarm, metrics: Episod
         "seed": opts.seed,
         "speed": opts.speed,
         "duration": opts.duration,
+        "simulator": "in-process" if opts.sim_in_process else "own process",
     })
     if kill is not None:
         lost = [e for e in session.events if e.kind == "link_lost" and e.drone == kill[0]]

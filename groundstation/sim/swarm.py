@@ -204,6 +204,15 @@ class SimSwarm:
                               float(m.battery_voltage(i, d.firmware.motors_on)), self._alive[i],
                               d.firmware.watchdog_armed)
 
+    def truths(self) -> list[DroneTruth]:
+        """Every drone's ground truth (one call; ``SimProcess`` answers it in one message)."""
+        return [self.truth(i) for i in range(self.n)]
+
+    def set_charge(self, i: int, charge_as: float) -> None:
+        """Set drone ``i``'s battery charge [A s] (drain it to test the low-battery failsafe)."""
+        with self._lock:
+            self.model.charge_as[i] = charge_as
+
     def param(self, i: int, name: str) -> float:
         with self._lock:
             return self.drones[i].params[name]
