@@ -1,0 +1,113 @@
+"""``train.teacher`` / ``imitation_steps`` / ``imitation_weight``: the classical team as a teacher (DAgger, then
+TD3+BC), tested on the learner and on a short run."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from runtime.spec import SpecError
+from training.baselines import ClassicalPursuers, FleeingEvaders, TeamPolicy
+from training.config import ExperimentConfig, TrainConfig
+from training.env import PursuitEnv
+from training.learned_eval import load_learned
+from training.maddpg import MADDPG, ReplayBuffer
+from training.train import CSV_COLUMNS, Trainer
+
+
+def _cfg(**train) -> ExperimentConfig:
+    return ExperimentConfig.from_dict({
+        "name": "imitation_check",
+        "spec": {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 1}},
+        "train": {"steps": 300, "n_envs": 8, "seed": 0, "batch_size": 128, "warmup_steps": 20, "threads": 1,
+                  "log_every": 100, "checkpoint_every": 100000, "checkpoint_buffer": False, **train}})
+
+
+@pytest.mark.parametrize("train, field", [
+    ({"teacher": "expert"}, "train.teacher"),
+    ({"imitation_steps": 100}, "train.teacher = 'classical'"),
+    ({"imitation_weight": 1.0}, "train.teacher = 'classical'"),
+    ({"teacher": "classical", "imitation_steps": 999}, "train.imitation_steps"),
+    ({"teacher": "classical", "imitation_weight": -1.0}, "train.imitation_weight"),
+    ({"teacher": "classical", "evaders": "static"}, "train.teacher"),
+])
+def test_bad_teacher_settings_name_the_field(train, field):
+    with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
+        _cfg(**train)
+
+
+def test_imitation_updates_regress_the_actors_onto_the_teacher_and_leave_the_paper_loss_alone():
+    cfg = _cfg(teacher="classical", imitation_steps=100)
+    spec, tc = cfg.spec, cfg.train
+    g = torch.Generator().manual_seed(0)
+    k, n, d = 256, spec.n_agents, spec.max_obs_dim
+    obs = torch.rand(k, n, d, generator=g) * 2 - 1
+    teach = torch.tanh(3 * obs[..., :2] - obs[..., 2:4])  # a smooth function of the observation
+    batch = (obs, torch.zeros(k, n, 2), torch.zeros(k, n), obs, torch.zeros(k, n, 2), teach)
+    agent = MADDPG(spec, tc)
+    first = agent.update(batch, imitation=True)["imitation_mse"]
+    for _ in range(300):
+        last = agent.update(batch, imitation=True)["imitation_mse"]
+    assert last < 0.2 * first, (first, last)
+    # without a teacher weight the actor loss is the paper's: the teacher column changes nothing
+    plain = dataclasses.replace(tc, teacher="none", imitation_steps=0)
+    a, b = MADDPG(spec, plain), MADDPG(spec, plain)
+    la = a.update(batch)
+    lb = b.update(batch[:5])
+    assert la == lb and "imitation_mse" not in la
+    # TD3+BC after the imitation: the loss reports the distance to the teacher; rows without one are ignored
+    bc = MADDPG(spec, dataclasses.replace(tc, imitation_weight=2.5))
+    half = teach.clone()
+    half[: k // 2] = float("nan")
+    out = bc.update((*batch[:5], half))
+    assert np.isfinite(out["imitation_mse"]) and np.isfinite(out["actor_loss"])
+    with pytest.raises(ValueError, match="teacher"):
+        MADDPG(spec, tc).update(batch[:5], imitation=True)
+
+
+def test_a_short_dagger_run_brings_the_actors_close_to_the_classical_team(tmp_path):
+    cfg = _cfg(teacher="classical", imitation_steps=300, noise_std=0.1, noise_std_final=0.05)
+    spec = cfg.spec
+    trainer = Trainer(cfg, tmp_path / "run")
+    teacher = TeamPolicy(ClassicalPursuers(), FleeingEvaders())
+    # states the run never saw: the untrained actors against the teacher
+    env = PursuitEnv(spec, cfg.rewards, n_envs=16, seed=123)
+    obs = env.reset()
+    states = []
+    for _ in range(40):
+        states.append((obs.copy(), teacher.act(obs, env)))
+        obs, *_ = env.step(teacher.act(obs, env))
+
+    def mse(policy) -> float:
+        errs = [np.mean(np.sum((np.clip(policy.act(o, None), -1, 1) - np.clip(t, -1, 1)) ** 2, -1))
+                for o, t in states]
+        return float(np.mean(errs))
+
+    class _Agent:
+        def act(self, o, env):
+            return trainer.agent.act(o).numpy()
+
+    before = mse(_Agent())
+    result = trainer.run(progress=False)
+    assert result.env_steps == 300
+    _, learned, _ = load_learned(run=tmp_path / "run")
+    after = mse(learned)
+    assert after < 0.5 * before, (before, after)
+    buf = trainer.buffer
+    assert torch.isfinite(buf.teach[: len(buf)]).all()  # every transition carries the teacher's action
+    rows = (tmp_path / "run" / "metrics.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    assert tuple(header) == CSV_COLUMNS
+    last = dict(zip(header, rows[-1].split(",")))
+    assert float(last["imitation_mse"]) < 0.5 and 0.0 <= float(last["teacher_share"]) < 0.5
+
+
+def test_the_paper_configs_have_no_teacher():
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    for name in ("paper_role_based", "paper_multi_target", "paper_flight"):
+        tc = ExperimentConfig.from_toml(root / "configs" / f"{name}.toml").train
+        assert tc.teacher == "none" and tc.imitation_steps == 0 and tc.imitation_weight == 0.0, name
+    assert TrainConfig().teacher == "none"
