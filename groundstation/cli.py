@@ -75,7 +75,7 @@ def _run_sim(args: argparse.Namespace) -> int:
                 vehicles.append(MavlinkVehicle(f"udpout:{args.host}:{args.mavlink_port + i}", config, start=start,
                                                seed=args.seed + i).start())
     except (SimError, OSError) as exc:
-        print(f"swarm-gs sim: {exc}", file=sys.stderr)
+        print(f"swarm-gs sim: error: {exc}", file=sys.stderr)
         _stop_sims(sims, vehicles)
         return 2
     stop = threading.Event()
@@ -190,7 +190,6 @@ def _input(option: str, path, load):
 def _check_demo(args: argparse.Namespace) -> None:
     """Every input of ``swarm-gs demo`` read and checked before a simulator starts, so that a wrong value is one
     line naming its option rather than an error after a 30 s flight (``run_demo`` reads them again)."""
-    from groundstation.demo import DemoError, _resolve_drone
     from groundstation.flight import FlightConfig
     from groundstation.positioning import AnchorLayout
     from groundstation.safety import FenceConfig
@@ -207,20 +206,22 @@ def _check_demo(args: argparse.Namespace) -> None:
     except (PolicyError, argparse.ArgumentTypeError) as exc:
         raise UsageError(f"--models: {exc}") from None
     spec = _input("--spec", args.spec, SwarmSpec.from_toml) if args.spec else manifest.spec
+    if spec.hash != manifest.spec.hash:  # preflight would refuse it too, after starting every simulator
+        raise UsageError(f"--spec {args.spec}: spec {spec.hash}, but the models in {args.models} were exported for "
+                         f"spec {manifest.spec.hash}: give the spec they were trained on, or leave --spec out")
     if args.flight_config:
         _input("--flight-config", args.flight_config, FlightConfig.from_toml)
         _input("--flight-config", args.flight_config,
                lambda p: SeparationConfig.from_dict(load_toml(p).get("separation", {})))
     fence = _input("--fence", args.fence, FenceConfig.from_toml)
     _input("--anchors", args.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence))
-    n = spec.n_agents
-    if args.kill_link is not None:
-        try:
-            _resolve_drone(str(args.kill_link[0]), [f"cf{i}" for i in range(n)])
-        except DemoError as exc:
-            raise UsageError(str(exc)) from None
     if args.base_port is not None:
-        _check_port_range("--base-port", args.base_port, n)
+        _check_port_range("--base-port", args.base_port, spec.n_agents)
+    # the --kill-link drone is resolved by run_demo, also before any simulator starts
+
+
+def _str(path) -> str | None:
+    return None if path is None else str(path)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -228,16 +229,15 @@ def _run_demo(args: argparse.Namespace) -> int:
     from groundstation.flight import PreflightError
     from runtime.policy import PolicyError
     _check_demo(args)
-    path = (lambda p: None if p is None else str(p))
     opts = DemoOptions(duration=args.duration, speed=args.speed, kill_link=args.kill_link, loss=args.loss,
                        models=args.models, engine=args.engine, spec=args.spec, fence=args.fence, anchors=args.anchors,
-                       flight=args.flight_config, seed=args.seed, json_path=path(args.json), log_path=path(args.log),
-                       plot_path=path(args.plot), base_port=args.base_port,
+                       flight=args.flight_config, seed=args.seed, json_path=_str(args.json), log_path=_str(args.log),
+                       plot_path=_str(args.plot), base_port=args.base_port,
                        telemetry_period_ms=args.telemetry_period_ms, separation=not args.no_separation)
     try:
         res = run_demo(opts)
     except (DemoError, PolicyError, SpecError, PreflightError, SimError) as exc:
-        print(f"swarm-gs demo: {exc}", file=sys.stderr)
+        print(f"swarm-gs demo: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         print(f"swarm-gs demo: interrupted; {exc or 'landing was not confirmed'}", file=sys.stderr)
@@ -326,12 +326,11 @@ def _run_fly(args: argparse.Namespace) -> int:
     try:
         previous = signal.signal(signal.SIGINT, on_sigint)
         try:
-            res = fly(fleet, flight, args.duration, None if args.log is None else str(args.log), stop,
-                      separation=separation)
+            res = fly(fleet, flight, args.duration, _str(args.log), stop, separation=separation)
         finally:
             signal.signal(signal.SIGINT, previous)
     except _fleet_errors() as exc:
-        print(f"swarm-gs fly: {exc}", file=sys.stderr)
+        print(f"swarm-gs fly: error: {exc}", file=sys.stderr)
         return 2
     for t, drone, kind, detail in res["events"]:
         print(f"  t={t:8.2f} s {drone or '':>6} {kind}: {detail}")
@@ -354,7 +353,7 @@ def _run_land(args: argparse.Namespace) -> int:
     try:
         out = land_fleet(fleet)
     except _fleet_errors() as exc:
-        print(f"swarm-gs land: {exc}", file=sys.stderr)
+        print(f"swarm-gs land: error: {exc}", file=sys.stderr)
         return 2
     for d, s in out.items():
         print(f"{d}: {s}")
@@ -373,7 +372,7 @@ def _run_status(args: argparse.Namespace) -> int:
     try:
         rows = fleet_status(fleet)
     except _fleet_errors() as exc:
-        print(f"swarm-gs status: {exc}", file=sys.stderr)
+        print(f"swarm-gs status: error: {exc}", file=sys.stderr)
         return 2
     for r in rows:
         pos = "-" if r["position"] is None else "(" + ", ".join(f"{c:+.2f}" for c in r["position"]) + ")"
@@ -399,6 +398,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not args.verbose:  # cflib logs a missing Crazyradio with its traceback; our LinkError says it in a line
+        logging.getLogger("cflib").setLevel(logging.CRITICAL)
     try:
         return args.func(args)
     except UsageError as exc:
@@ -407,6 +408,9 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # a disk, socket or permission failure after the checks: one line, no traceback
         print(f"swarm-gs {args.command}: failed: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # a second Ctrl-C in fly (emergency stop) or one outside a flight
+        print(f"swarm-gs {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

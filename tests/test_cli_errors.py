@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 MODELS = str(ROOT / "models" / "role_based")
 ACTOR = str(ROOT / "models" / "role_based" / "pursuer_0.onnx")
 CONFIG = str(ROOT / "configs" / "role_based.toml")
+OTHER_SPEC = str(ROOT / "configs" / "multi_target.toml")  # not the spec of models/role_based
 
 
 @pytest.fixture
@@ -116,6 +117,7 @@ CASES = [
     ("training.cli", "evaluate --config BINTOML --episodes 1", ["BINTOML", "not valid TOML"], None),
     ("training.cli", "evaluate --plot TMP/e.txt --episodes 1", ["--plot", "'.txt'", ".png"], "TMP/e.txt"),
     ("training.cli", "plot --out TMP/p.txt", ["--out", "'.txt'", ".png"], "TMP/p.txt"),
+    ("training.cli", "plot --run FILE", ["--run", "is a file", "swarm-train train"], "FILE/plots"),
     # swarm-gs: every one fails before a simulator starts (a demo that passed its checks would fly for 30 s)
     ("groundstation.cli", "sim --base-port 70000", ["--base-port", "'70000'", "1..65535"], None),
     ("groundstation.cli", "sim --drones 12 --base-port 65530", ["--base-port", "65524"], None),
@@ -151,6 +153,7 @@ CASES = [
                                                                      "valid keys"], None),
     ("groundstation.cli", "demo --models M --flight-config DIR", ["--flight-config", "is a folder"], None),
     ("groundstation.cli", "demo --models M --spec BINTOML", ["--spec", "not valid TOML"], None),
+    ("groundstation.cli", "demo --models M --spec S2", ["--spec", "exported for spec", "leave --spec out"], None),
     ("groundstation.cli", "fly --fleet NONE", ["--fleet", "does not exist"], None),
     ("groundstation.cli", "fly --fleet NONE --duration 0", ["--duration", "'0'"], None),
     ("groundstation.cli", "fly --fleet FLEETKEY", ["--fleet", "fleet.telemetry_period", "valid keys"], None),
@@ -168,8 +171,8 @@ def _fill(text: str, paths: dict) -> str:
 
 
 def _token(tok: str, paths: dict) -> str:
-    return {"''": "", "M": MODELS, "C": CONFIG, "A": ACTOR}.get(tok) if tok in ("''", "M", "C", "A") \
-        else _fill(tok, paths)
+    fixed = {"''": "", "M": MODELS, "C": CONFIG, "A": ACTOR, "S2": OTHER_SPEC}
+    return fixed[tok] if tok in fixed else _fill(tok, paths)
 
 
 @pytest.mark.parametrize("module, argv, needles, absent", CASES, ids=[f"{m.split('.')[0]} {a}" for m, a, _, _ in CASES])

@@ -10,6 +10,7 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 from typing import Any, Callable
 
 from runtime.cliutil import ArgumentParser, check_out_dir, check_out_file, out_picture, positive_int
@@ -250,6 +251,9 @@ def check_outputs(args: argparse.Namespace) -> None:
                 (out_picture if name == "plot" else check_out_file)(path)
             except argparse.ArgumentTypeError as exc:
                 raise UsageError(f"--{name}: {exc}") from None
+    if args.command == "plot" and args.run and Path(args.run).exists() and not Path(args.run).is_dir():
+        raise UsageError(f"--run: {args.run!r} is a file, not a training run folder; give the folder that "
+                         f"`swarm-train train --out RUN` wrote")
     if args.command == "plot" and args.out:  # a folder with --run, else the PNG
         try:
             (check_out_dir if args.run else out_picture)(args.out)
