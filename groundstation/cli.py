@@ -187,6 +187,20 @@ def _input(option: str, path, load):
         raise UsageError(f"{option}: {exc}") from None
 
 
+def _check_actor_files(option: str, manifest) -> None:
+    """Every actor file of ``manifest`` is there and is the one exported (sha256): ``load_models`` checks it too,
+    but only after the links are up and preflight passed."""
+    import hashlib
+    for entry in manifest.agents:
+        if not entry.file.is_file():
+            raise UsageError(f"{option}: no ONNX model at {str(entry.file)!r} (agent {entry.id}): re-export with "
+                             f"`swarm-export onnx --run runs/NAME --out {manifest.folder}`")
+        if hashlib.sha256(entry.file.read_bytes()).hexdigest() != entry.sha256:
+            raise UsageError(f"{option}: {str(entry.file)!r} is not the file the manifest lists (sha256 differs): "
+                             f"it was damaged or replaced; re-export with `swarm-export onnx --run runs/NAME --out "
+                             f"{manifest.folder}`")
+
+
 def _check_demo(args: argparse.Namespace) -> None:
     """Every input of ``swarm-gs demo`` read and checked before a simulator starts, so that a wrong value is one
     line naming its option rather than an error after a 30 s flight (``run_demo`` reads them again)."""
@@ -205,6 +219,7 @@ def _check_demo(args: argparse.Namespace) -> None:
         manifest = read_manifest(models_dir(args.models))
     except (PolicyError, argparse.ArgumentTypeError) as exc:
         raise UsageError(f"--models: {exc}") from None
+    _check_actor_files("--models", manifest)
     spec = _input("--spec", args.spec, SwarmSpec.from_toml) if args.spec else manifest.spec
     if spec.hash != manifest.spec.hash:  # preflight would refuse it too, after starting every simulator
         raise UsageError(f"--spec {args.spec}: spec {spec.hash}, but the models in {args.models} were exported for "
@@ -269,10 +284,15 @@ def _load_fleet(path: str, flying: bool = False):
     separation = _input("--fleet", path, load_separation)
     where = f"--fleet {path}: fleet"
     try:
-        read_manifest(fleet.models)
+        manifest = read_manifest(fleet.models)
     except PolicyError as exc:
         raise UsageError(f"{where}.models: {exc}") from None
+    _check_actor_files(f"{where}.models", manifest)
     spec = _input(f"{where}.spec", fleet.spec, SwarmSpec.from_toml) if fleet.spec else SwarmSpec()
+    if spec.hash != manifest.spec.hash:  # preflight refuses it too, once every radio link is up
+        raise UsageError(f"{where}.spec: spec {spec.hash} ({fleet.spec or 'the default spec'}), but the models in "
+                         f"{fleet.models} were exported for spec {manifest.spec.hash}: set fleet.spec to the spec "
+                         f"they were trained on")
     fence = _input(f"{where}.fence", fleet.fence, FenceConfig.from_toml)
     if fleet.anchors:
         _input(f"{where}.anchors", fleet.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence))

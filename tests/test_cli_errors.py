@@ -22,7 +22,8 @@ OTHER_SPEC = str(ROOT / "configs" / "multi_target.toml")  # not the spec of mode
 @pytest.fixture
 def paths(tmp_path, monkeypatch):
     """A file (``FILE``), a folder (``DIR``), a broken TOML (``BAD``), a missing path (``NONE``), a file that is
-    not UTF-8 (``BINTOML``) and config files with one wrong key each (``*KEY``, ``FLEETMODELS``)."""
+    not UTF-8 (``BINTOML``) and config files with one wrong key or value each (``*KEY``, ``FLEETMODELS``,
+    ``FLEETSPEC``)."""
     monkeypatch.chdir(ROOT)  # the commands' defaults (configs/..., models/...) are relative to the repository
     (tmp_path / "afile").write_text("x\n")
     (tmp_path / "adir").mkdir()
@@ -35,11 +36,14 @@ def paths(tmp_path, monkeypatch):
     (tmp_path / "fleet_models.toml").write_text(
         f'[fleet]\nmodels = "{tmp_path / "adir"}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
         '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
+    (tmp_path / "fleet_spec.toml").write_text(
+        f'[fleet]\nmodels = "{MODELS}"\nspec = "{OTHER_SPEC}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
+        '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
     return {"FILE": str(tmp_path / "afile"), "DIR": str(tmp_path / "adir"), "BAD": str(tmp_path / "bad.toml"),
             "NONE": str(tmp_path / "none"), "TMP": str(tmp_path), "BINTOML": str(tmp_path / "bin.toml"),
             "FENCEKEY": str(tmp_path / "fence_key.toml"), "SEPKEY": str(tmp_path / "sep_key.toml"),
             "TRAINKEY": str(tmp_path / "train_key.toml"), "FLEETKEY": str(tmp_path / "fleet_key.toml"),
-            "FLEETMODELS": str(tmp_path / "fleet_models.toml")}
+            "FLEETMODELS": str(tmp_path / "fleet_models.toml"), "FLEETSPEC": str(tmp_path / "fleet_spec.toml")}
 
 
 def _run(module: str, argv: list[str], capsys) -> tuple[int, str]:
@@ -158,6 +162,7 @@ CASES = [
     ("groundstation.cli", "fly --fleet NONE --duration 0", ["--duration", "'0'"], None),
     ("groundstation.cli", "fly --fleet FLEETKEY", ["--fleet", "fleet.telemetry_period", "valid keys"], None),
     ("groundstation.cli", "fly --fleet FLEETMODELS", ["--fleet", "fleet.models", "manifest.json"], None),
+    ("groundstation.cli", "fly --fleet FLEETSPEC", ["--fleet", "fleet.spec", "exported for spec"], None),
     ("groundstation.cli", "fly --fleet BAD --log FILE/f.jsonl", ["--log", "is a file"], "FILE/f.jsonl"),
     ("groundstation.cli", "status --fleet DIR", ["--fleet", "is a folder"], None),
     ("groundstation.cli", "land --fleet BAD", ["--fleet", "not valid TOML"], None),
@@ -185,6 +190,25 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(module, argv, needles, 
         assert _fill(needle, paths) in lines[0], (needle, lines[0])
     if absent is not None:
         assert not Path(_fill(absent, paths)).exists()
+
+
+@pytest.mark.parametrize("damage, needle", [("delete", "no ONNX model at"), ("overwrite", "sha256 differs")])
+def test_a_missing_or_replaced_actor_fails_before_any_link_opens(damage, needle, tmp_path, capsys, monkeypatch):
+    """``load_models`` would find it only after the simulators (or radios) are up and preflight passed."""
+    import shutil
+    monkeypatch.chdir(ROOT)
+    models = tmp_path / "models"
+    shutil.copytree(MODELS, models)
+    actor = models / "pursuer_0.onnx"
+    actor.unlink() if damage == "delete" else actor.write_bytes(b"not the exported actor")
+    fleet = tmp_path / "fleet.toml"
+    fleet.write_text(f'[fleet]\nmodels = "{models}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n[[fleet.drones]]\n'
+                     'id = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
+    for argv, option in ((["demo", "--models", str(models)], "--models"), (["fly", "--fleet", str(fleet)],
+                                                                            "fleet.models")):
+        rc, err = _run("groundstation.cli", argv, capsys)
+        assert rc == 2 and len(err.strip().splitlines()) == 1, err
+        assert option in err and needle in err and "pursuer_0.onnx" in err and "swarm-export onnx" in err, err
 
 
 def test_the_types_take_what_they_should():
