@@ -59,9 +59,10 @@ def test_replay_buffer_wraps_and_round_trips_newest_first_kept():
     small = ReplayBuffer(3, 2, 3)
     small.load_state_dict(sd)
     assert sorted(small.obs[:, 0, 0].tolist()) == [6, 7, 8]  # a smaller buffer keeps the newest
-    o, a, r, n, na = buf.sample(100, torch.Generator().manual_seed(0))
+    o, a, r, n, na, te = buf.sample(100, torch.Generator().manual_seed(0))
     assert o.shape == (100, 2, 3) and torch.equal(n, o + 0.5)
     assert na.shape == (100, 2, 2) and torch.isnan(na).all()  # none given: NaN, the target actors decide
+    assert te.shape == (100, 2, 2) and torch.isnan(te).all()  # no teacher
     with pytest.raises(ValueError, match="empty"):
         ReplayBuffer(4, 1, 1).sample(1, torch.Generator())
 
@@ -220,7 +221,7 @@ def test_replay_buffer_keeps_next_actions_and_loads_old_buffers_without_them(cap
     buf = ReplayBuffer(8, 2, 3)
     obs = torch.arange(4, dtype=torch.float32).view(4, 1, 1).expand(4, 2, 3)
     buf.add(obs, torch.zeros(4, 2, 2), torch.zeros(4, 2), obs + 0.5, obs[:, :, :2] + 0.25)
-    o, _, _, _, na = buf.sample(50, torch.Generator().manual_seed(0))
+    o, _, _, _, na, _ = buf.sample(50, torch.Generator().manual_seed(0))
     assert torch.equal(na, o[:, :, :2] + 0.25)
     sd = buf.state_dict()
     again = ReplayBuffer(8, 2, 3)
@@ -231,6 +232,7 @@ def test_replay_buffer_keeps_next_actions_and_loads_old_buffers_without_them(cap
         again.load_state_dict(old)
     assert len(again) == 4 and torch.isnan(again.next_act[:4]).all()  # unknown: the target actors decide
     assert "without next actions" in caplog.text
+    assert torch.isnan(again.teach[:4]).all()  # a buffer from before teachers: no teacher actions
 
 
 def test_td_target_uses_the_stored_next_action_of_scripted_agents_and_the_target_actor_of_learners():

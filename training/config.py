@@ -180,6 +180,20 @@ class TrainConfig:
     obs_scaling: bool = False
     """Actors see observations mapped from the spec's per-field ranges (``spec.layout(role).bounds()``) to
     [-1, 1]; the map is folded into the first layer on export, so exported actors take raw observations."""
+    teacher: str = "none"
+    """A teacher for the actors: "none" (the paper's), or "classical": ``training.baselines.ClassicalPursuers``
+    for the pursuer team's rows and ``FleeingEvaders`` for the evaders' (the classical team, which reads the
+    true state). Its actions are recorded with every transition; ``imitation_steps`` and
+    ``imitation_weight`` say how the actors learn from them."""
+    imitation_steps: int = 0
+    """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
+    beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor
+    steps regress every actor onto the teacher's actions (the critics learn from these transitions as
+    always, so they are warm when reinforcement learning takes over). 0: none."""
+    imitation_weight: float = 0.0
+    """After ``imitation_steps``: the actor loss is TD3+BC's ``-Q / mean|Q| + w x |mu - teacher|^2``
+    (Fujimoto and Gu 2021), which keeps the actors near the teacher while the critics improve on it. 0: the
+    paper's actor loss."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "n_envs", "batch_size", "buffer_size", "update_every", "log_every",
@@ -223,6 +237,19 @@ class TrainConfig:
             raise SpecError(f"train.algorithm: {self.algorithm!r} is not one of 'maddpg', 'matd3'")
         if self.critic not in ("local", "global"):
             raise SpecError(f"train.critic: {self.critic!r} is not one of 'local', 'global'")
+        if self.teacher not in ("none", "classical"):
+            raise SpecError(f"train.teacher: {self.teacher!r} is not one of 'none', 'classical'")
+        if self.imitation_steps < 0 or self.imitation_steps > self.steps:
+            raise SpecError(f"train.imitation_steps: must be in [0, train.steps = {self.steps}], got "
+                            f"{self.imitation_steps!r}")
+        if not self.imitation_weight >= 0:
+            raise SpecError(f"train.imitation_weight: must be >= 0, got {self.imitation_weight!r}")
+        if (self.imitation_steps > 0 or self.imitation_weight > 0) and self.teacher == "none":
+            raise SpecError("train.imitation_steps / train.imitation_weight learn from a teacher: set "
+                            "train.teacher = 'classical' (or both to 0)")
+        if self.teacher != "none" and self.evaders == "static":
+            raise SpecError("train.teacher: the classical teacher's evaders flee; train.evaders = 'static' holds "
+                            "them still: use train.evaders = 'learned' or 'scripted'")
         for name in ("share_params", "obs_scaling"):
             if not isinstance(getattr(self, name), bool):
                 raise SpecError(f"train.{name}: must be true or false, got {getattr(self, name)!r}")

@@ -43,13 +43,15 @@ class Batch(NamedTuple):
     rew: torch.Tensor  # [K, N]
     next_obs: torch.Tensor  # [K, N, D]
     next_act: torch.Tensor  # [K, N, 2]
+    teach: torch.Tensor | None = None  # [K, N, 2]: the teacher's action at obs (train.teacher), NaN: none
 
 
 class ReplayBuffer:
     """Preallocated ring buffer of joint transitions (obs ``[N, D]``, actions ``[N, 2]``, rewards ``[N]``,
-    next obs ``[N, D]``, next actions ``[N, 2]``), float32 on ``device``."""
+    next obs ``[N, D]``, next actions ``[N, 2]``, the teacher's actions at obs ``[N, 2]``, NaN without one),
+    float32 on ``device``."""
 
-    FIELDS = ("obs", "act", "rew", "next_obs", "next_act")
+    FIELDS = ("obs", "act", "rew", "next_obs", "next_act", "teach")
 
     def __init__(self, capacity: int, n_agents: int, obs_dim: int, act_dim: int = 2,
                  device: str | torch.device = "cpu") -> None:
@@ -61,20 +63,24 @@ class ReplayBuffer:
         self.rew = torch.zeros(capacity, n_agents, **kw)
         self.next_obs = torch.zeros(capacity, n_agents, obs_dim, **kw)
         self.next_act = torch.zeros(capacity, n_agents, act_dim, **kw)
+        self.teach = torch.full((capacity, n_agents, act_dim), float("nan"), **kw)
         self.ptr = 0
         self.size = 0
 
     def __len__(self) -> int:
         return self.size
 
-    def add(self, obs: Any, act: Any, rew: Any, next_obs: Any, next_act: Any = None) -> None:
+    def add(self, obs: Any, act: Any, rew: Any, next_obs: Any, next_act: Any = None, teach: Any = None) -> None:
         """Append a batch of ``B`` transitions (numpy or torch), wrapping around when full. ``next_act``
         ``[B, N, 2]``: the actions taken at ``next_obs`` (needed for scripted agents, whose next action no
         target actor knows); NaN entries (and None: all) mean unknown, so the learner takes its target
-        actors' next action there (zero for agents that do not learn)."""
+        actors' next action there (zero for agents that do not learn). ``teach`` ``[B, N, 2]``: the teacher's
+        actions at ``obs`` (``train.teacher``); None: no teacher (NaN)."""
         if next_act is None:  # unknown: the target actors decide (zero for agents that do not learn)
             next_act = torch.full_like(torch.as_tensor(act, dtype=torch.float32), float("nan"))
-        values = (obs, act, rew, next_obs, next_act)
+        if teach is None:
+            teach = torch.full_like(torch.as_tensor(act, dtype=torch.float32), float("nan"))
+        values = (obs, act, rew, next_obs, next_act, teach)
         tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in values]
         b = tensors[0].shape[0]
         if b > self.capacity:  # only the newest fit
@@ -106,7 +112,7 @@ class ReplayBuffer:
                 log.warning("replay buffer saved without next actions: its %d transitions bootstrap on the "
                             "target actors (zero for agents that do not learn) until they are overwritten",
                             sd["obs"].shape[0])
-            self.add(sd["obs"], sd["act"], sd["rew"], sd["next_obs"], sd.get("next_act"))
+            self.add(sd["obs"], sd["act"], sd["rew"], sd["next_obs"], sd.get("next_act"), sd.get("teach"))
 
 
 def clip_grad_norm_per_agent(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
@@ -302,10 +308,15 @@ class MADDPG:
             return unknown
         return torch.where(torch.isnan(stored), unknown, stored)
 
-    def update(self, batch: Sequence[torch.Tensor]) -> dict[str, float]:
+    def update(self, batch: Sequence[torch.Tensor], imitation: bool = False) -> dict[str, float]:
         """One critic step, then (every ``policy_delay``-th update with ``matd3``, else always) one actor
         step and a soft target update, for every agent at once. On updates without an actor step the actor
-        figures returned are those of the last actor step."""
+        figures returned are those of the last actor step.
+
+        ``imitation``: the actor step regresses the actors onto the batch's teacher actions instead of
+        following the critics (behaviour cloning; the critics learn as always). Otherwise, with
+        ``train.imitation_weight`` w > 0, the actor loss is TD3+BC's (Fujimoto and Gu 2021):
+        ``-Q / mean|Q| + w x |mu - teacher|^2`` on the rows that have a teacher action."""
         obs, act = batch[0], batch[1]  # [K, N, D], [K, N, 2]
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
@@ -322,7 +333,8 @@ class MADDPG:
         self.critic_opt.step()
         self.updates += 1
         if cfg.algorithm != "matd3" or self.updates % cfg.policy_delay == 0:
-            self._last_actor = self._actor_step(obs, act, state, feat[:n].detach())
+            teach = batch[5] if len(batch) > 5 else None
+            self._last_actor = self._actor_step(obs, act, state, feat[:n].detach(), teach, imitation)
             soft_update(self.actors_tgt, self.actors, cfg.tau)
             soft_update(self.critics_tgt, self.critics, cfg.tau)
         w = self.learn_mask / self.learn_mask.sum()
@@ -330,21 +342,41 @@ class MADDPG:
                 "q_mean": float(q.detach()[:n].mean()), "critic_grad_norm": float(critic_norm.mean())}
 
     def _actor_step(self, obs: torch.Tensor, act: torch.Tensor, state: torch.Tensor,
-                    feat: torch.Tensor) -> dict[str, float]:
-        """Critic i (twin 0) sees agent i's action replaced by mu_i(o_i), the others' from the sample."""
+                    feat: torch.Tensor, teach: torch.Tensor | None = None,
+                    imitation: bool = False) -> dict[str, float]:
+        """Critic i (twin 0) sees agent i's action replaced by mu_i(o_i), the others' from the sample (with
+        ``imitation``, no critic: the distance to the teacher's actions)."""
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
         x = self.actor_input(obs.transpose(0, 1))
         pre = self.actors.forward_pre(x, self._actor_ix)  # [N, K, 2]
         mu = torch.tanh(pre)
-        joint = act.unsqueeze(0) * (1 - self._eye) + mu.unsqueeze(2) * self._eye  # [N, K, N, 2]
-        self.critics.requires_grad_(False)
-        try:
-            q_pi = self.critics(state, joint.reshape(n, k, -1), feat, self._actor_critic_ix,
-                                None if self._slot is None else self._slot[:n])
-        finally:
-            self.critics.requires_grad_(True)
-        actor_loss_n = -q_pi.mean(1) + cfg.action_reg * pre.pow(2).mean((1, 2))
+        extra: dict[str, float] = {}
+        bc_n = None
+        if teach is not None and (imitation or cfg.imitation_weight > 0):
+            t = teach.transpose(0, 1)  # [N, K, 2]
+            has = torch.isfinite(t).all(-1)  # [N, K]
+            sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros((), device=mu.device))
+            bc_n = sq.sum(1) / has.sum(1).clamp(min=1)  # [N] mean squared distance to the teacher
+            extra["imitation_mse"] = float((bc_n.detach() * self.learn_mask).sum() / self.learn_mask.sum())
+        if imitation:
+            if bc_n is None:
+                raise ValueError("an imitation update needs the batch's teacher actions (train.teacher)")
+            actor_loss_n = bc_n + cfg.action_reg * pre.pow(2).mean((1, 2))
+        else:
+            joint = act.unsqueeze(0) * (1 - self._eye) + mu.unsqueeze(2) * self._eye  # [N, K, N, 2]
+            self.critics.requires_grad_(False)
+            try:
+                q_pi = self.critics(state, joint.reshape(n, k, -1), feat, self._actor_critic_ix,
+                                    None if self._slot is None else self._slot[:n])
+            finally:
+                self.critics.requires_grad_(True)
+            if bc_n is not None:  # TD3+BC: the Q term normalised so that imitation_weight means the same
+                q_term = -q_pi.mean(1) / q_pi.detach().abs().mean(1).clamp(min=1e-6)
+                actor_loss_n = q_term + cfg.imitation_weight * bc_n
+            else:
+                actor_loss_n = -q_pi.mean(1)
+            actor_loss_n = actor_loss_n + cfg.action_reg * pre.pow(2).mean((1, 2))
         if cfg.int8_robustness > 0:
             robust_n = self.int8_sensitivity(obs.transpose(0, 1))
             actor_loss_n = actor_loss_n + cfg.int8_robustness * robust_n
@@ -353,7 +385,8 @@ class MADDPG:
         actor_norm = clip_grad_norm_per_agent(list(self.actors.parameters()), cfg.grad_clip)
         self.actor_opt.step()
         w = self.learn_mask / self.learn_mask.sum()
-        extra = {"int8_sensitivity": float((robust_n.detach() * w).sum())} if cfg.int8_robustness > 0 else {}
+        if cfg.int8_robustness > 0:
+            extra["int8_sensitivity"] = float((robust_n.detach() * w).sum())
         return {**extra, "actor_loss": float((actor_loss_n.detach() * w).sum()),
                 "actor_grad_norm": float(actor_norm.mean())}
 

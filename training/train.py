@@ -44,7 +44,7 @@ ROLES = ("pursuer", "scout", "evader")
 CSV_COLUMNS = ("step", "frames", "updates", "time_s", "fps", "updates_per_s", "noise_std",
                *(f"reward_{r}" for r in ROLES), *(f"return_{r}" for r in ROLES),
                "min_dist", "avg_dist", "max_dist", "captures_per_step", "episodes",
-               "critic_loss", "actor_loss", "q_mean", "int8_sensitivity")
+               "critic_loss", "actor_loss", "q_mean", "int8_sensitivity", "imitation_mse", "teacher_share")
 STATE_FORMAT = 1
 
 
@@ -161,6 +161,11 @@ class Trainer:
         self.agent = MADDPG(cfg.spec, tc)
         self.np_rng = np.random.default_rng(tc.seed + 3)
         self.mixer = OpponentMixer(cfg.spec, tc, np.random.default_rng(tc.seed + 4))
+        self.teacher = None
+        if tc.teacher == "classical":  # the classical team (true state): pursuit + Lloyd scouting, fleeing evaders
+            from training.baselines import ClassicalPursuers, FleeingEvaders, TeamPolicy
+            self.teacher = TeamPolicy(ClassicalPursuers(), FleeingEvaders())
+        self.teacher_rng = np.random.default_rng(tc.seed + 5)
         self._learns = self.agent.learn_mask.cpu().numpy() > 0  # [N] agents whose actors train
         self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
         self.sample_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 1)
@@ -213,6 +218,8 @@ class Trainer:
         self.noise_gen.set_state(st["noise_gen"].cpu() if self.tc.device == "cpu" else st["noise_gen"])
         self.np_rng.bit_generator.state = st["np_rng"]
         self.env.world.rng.bit_generator.state = st["world_rng"]
+        if "teacher_rng" in st:
+            self.teacher_rng.bit_generator.state = st["teacher_rng"]
         if "opponents" in st:
             self.mixer.load_state_dict(st["opponents"], self.agent.frozen_actors())
             self.mixer.rng.bit_generator.state = st["opponent_rng"]
@@ -258,7 +265,7 @@ class Trainer:
               "sample_gen": self.sample_gen.get_state(), "noise_gen": self.noise_gen.get_state(),
               "np_rng": self.np_rng.bit_generator.state, "world_rng": self.env.world.rng.bit_generator.state,
               "config": self.cfg.to_dict(), "opponents": self.mixer.state_dict(),
-              "opponent_rng": self.mixer.rng.bit_generator.state}
+              "opponent_rng": self.mixer.rng.bit_generator.state, "teacher_rng": self.teacher_rng.bit_generator.state}
         if self.tc.checkpoint_buffer:
             _save_torch(self.buffer.state_dict(), self.ckpt_dir / "buffer.pt")
         _save_torch(st, self.ckpt_dir / "state.pt")
@@ -276,12 +283,31 @@ class Trainer:
         frac = min(1.0, self.env_step / tc.noise_decay_steps)
         return tc.noise_std + frac * (tc.noise_std_final - tc.noise_std)
 
-    def _actions(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Actions ``[B, N, 2]`` for every env and ``given`` ``[B, N]``: True where the action is not a learner's
-        (scripted or frozen evaders, static agents), so that the TD target bootstraps on it."""
+    def imitating(self) -> bool:
+        """Whether this env step is in the imitation (DAgger) phase (``train.imitation_steps``)."""
+        return self.env_step < self.tc.imitation_steps
+
+    def teacher_share(self) -> float:
+        """DAgger's beta: the probability that an env acts with the teacher at this env step."""
+        if not self.imitating():
+            return 0.0
+        return 1.0 - self.env_step / self.tc.imitation_steps
+
+    def _actions(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Actions ``[B, N, 2]`` for every env, ``given`` ``[B, N]``: True where the action is not a learner's
+        (scripted or frozen evaders, static agents), so that the TD target bootstraps on it, and the teacher's
+        actions ``[B, N, 2]`` (None without ``train.teacher``)."""
         tc = self.tc
         learns = self._learns
-        if self.env_step < tc.warmup_steps:
+        teach = None
+        if self.teacher is not None:
+            teach = np.clip(np.asarray(self.teacher.act(obs, self.env), dtype=np.float64), -1.0, 1.0)
+        if self.imitating():  # DAgger: the teacher flies a share beta of the envs, the learners the rest
+            a = self.agent.act(obs, self.noise_std(), self.noise_gen).cpu().numpy().astype(np.float64)
+            by_teacher = self.teacher_rng.random(tc.n_envs) < self.teacher_share()
+            rows = by_teacher[:, None] & learns[None, :]
+            a[rows] = teach[rows]
+        elif self.env_step < tc.warmup_steps:
             a = self.np_rng.uniform(-1.0, 1.0, (tc.n_envs, self.spec.n_agents, 2))
             a = a * learns[None, :, None]
         else:
@@ -289,19 +315,19 @@ class Trainer:
         given = np.broadcast_to(~learns, a.shape[:2]).copy()
         if self.mixer.active:
             given |= self.mixer.apply(obs, a, self.env, self.agent.device)
-        return a, given
+        return a, given, teach
 
     def _store(self, pending: tuple, actions: np.ndarray | None, given: np.ndarray | None) -> None:
         """Store the previous step's transitions with the next actions now known: the actions really taken
         where they are given (NaN elsewhere: the learners' target actors decide). Envs whose episode ended
         bootstrap on the last given action (the next one was never taken; scripted evaders move smoothly)."""
-        obs, act, rew, next_obs, act_given, done_ids = pending
+        obs, act, rew, next_obs, act_given, done_ids, teach = pending
         if actions is None:
             actions, given = act, act_given
         next_act = np.where(given[..., None], actions, np.nan)
         if done_ids is not None:
             next_act[done_ids] = np.where(act_given[done_ids, :, None], act[done_ids], np.nan)
-        self.buffer.add(obs, act, rew, next_obs, next_act)
+        self.buffer.add(obs, act, rew, next_obs, next_act, teach)
 
     def run(self, progress: bool = True) -> TrainResult:
         tc = self.tc
@@ -323,7 +349,7 @@ class Trainer:
         pending = None  # the last step's transitions, stored once the next actions are known
         try:
             while self.env_step < tc.steps:
-                actions, given = self._actions(obs)
+                actions, given, teach = self._actions(obs)
                 if pending is not None:
                     self._store(pending, actions, given)
                     pending = None
@@ -334,16 +360,23 @@ class Trainer:
                     store_next = next_obs.copy()
                     store_next[done_ids] = info["final_obs"]
                     self.mixer.reset(done_ids)
-                pending = (obs, actions, rew, store_next, given, done_ids)
+                pending = (obs, actions, rew, store_next, given, done_ids, teach)
                 obs = next_obs
                 self.env_step += 1
                 if self.mixer.snapshot_due(self.env_step):  # one actor row per agent, on raw obs
                     self.mixer.add_snapshot(self.agent.frozen_actors())
                 self._record(win, rew, done, info)
-                if (self.env_step >= tc.warmup_steps and len(self.buffer) >= tc.batch_size
+                if self.env_step == tc.imitation_steps < tc.steps:  # the cloned team, before RL takes over
+                    save_actors(self.out / "actors_imitation.pt", self.spec, self.agent.to_actors(),
+                                self.cfg.to_dict(), {"git_revision": git_revision(), "env_steps": self.env_step,
+                                                     "updates": self.agent.updates, "run": str(self.out),
+                                                     "phase": "imitation"})
+                imitation = self.imitating()
+                if ((self.env_step >= tc.warmup_steps or imitation) and len(self.buffer) >= tc.batch_size
                         and self.env_step % tc.update_every == 0):
                     for _ in range(tc.updates_per_round):
-                        losses = self.agent.update(self.buffer.sample(tc.batch_size, self.sample_gen))
+                        losses = self.agent.update(self.buffer.sample(tc.batch_size, self.sample_gen),
+                                                   imitation=imitation)
                         for k, v in losses.items():
                             win.losses[k] = win.losses.get(k, 0.0) + v
                         win.n_updates += 1
@@ -407,7 +440,8 @@ class Trainer:
         row["min_dist"], row["avg_dist"], row["max_dist"] = (win.dist / n).tolist()
         row["captures_per_step"] = win.captures / n
         row["episodes"] = len(win.returns[next(iter(self.role_idx))])
-        for k in ("critic_loss", "actor_loss", "q_mean", "int8_sensitivity"):
+        row["teacher_share"] = round(self.teacher_share(), 4) if self.teacher is not None else ""
+        for k in ("critic_loss", "actor_loss", "q_mean", "int8_sensitivity", "imitation_mse"):
             row[k] = win.losses[k] / win.n_updates if win.n_updates and k in win.losses else ""
         with (self.out / "metrics.csv").open("a", newline="") as fh:
             csv.writer(fh).writerow([_fmt(row[c]) for c in CSV_COLUMNS])
