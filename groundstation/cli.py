@@ -173,15 +173,20 @@ def _add_no_separation(p: argparse.ArgumentParser) -> None:
                    help="fly without the separation filter, for comparison only: drones may touch and crash")
 
 
-def _input(option: str, path, load):
-    """``load(path)``, with a missing or unreadable file or a wrong value in it as a ``UsageError`` naming
-    ``option`` (the loaders' messages name the file and the key)."""
+def _input(option: str, path, load, tables: tuple[str, ...] = ()):
+    """``load(path)``, with a missing or unreadable file, one without any of ``tables`` (the loaders would take
+    their defaults: a wrong file passes silently) or a wrong value in it as a ``UsageError`` naming ``option``
+    (the loaders' messages name the file and the key)."""
     from runtime.policy import PolicyError
+    from runtime.spec import load_toml
     try:
         check_in_file(path)
     except argparse.ArgumentTypeError as exc:
         raise UsageError(f"{option}: {exc}") from None
     try:
+        if tables and not set(tables) & set(load_toml(path)):
+            raise UsageError(f"{option}: {str(path)!r} has no " + " or ".join(f"[{t}]" for t in tables)
+                             + " table: is it the right file?")
         return load(path)
     except (SpecError, PolicyError) as exc:
         raise UsageError(f"{option}: {exc}") from None
@@ -220,16 +225,16 @@ def _check_demo(args: argparse.Namespace) -> None:
     except (PolicyError, argparse.ArgumentTypeError) as exc:
         raise UsageError(f"--models: {exc}") from None
     _check_actor_files("--models", manifest)
-    spec = _input("--spec", args.spec, SwarmSpec.from_toml) if args.spec else manifest.spec
+    spec = _input("--spec", args.spec, SwarmSpec.from_toml, ("spec",)) if args.spec else manifest.spec
     if spec.hash != manifest.spec.hash:  # preflight would refuse it too, after starting every simulator
         raise UsageError(f"--spec {args.spec}: spec {spec.hash}, but the models in {args.models} were exported for "
                          f"spec {manifest.spec.hash}: give the spec they were trained on, or leave --spec out")
     if args.flight_config:
-        _input("--flight-config", args.flight_config, FlightConfig.from_toml)
+        _input("--flight-config", args.flight_config, FlightConfig.from_toml, ("flight", "separation"))
         _input("--flight-config", args.flight_config,
                lambda p: SeparationConfig.from_dict(load_toml(p).get("separation", {})))
-    fence = _input("--fence", args.fence, FenceConfig.from_toml)
-    _input("--anchors", args.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence))
+    fence = _input("--fence", args.fence, FenceConfig.from_toml, ("fence",))
+    _input("--anchors", args.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence), ("lps",))
     if args.base_port is not None:
         _check_port_range("--base-port", args.base_port, spec.n_agents)
     # the --kill-link drone is resolved by run_demo, also before any simulator starts
@@ -288,14 +293,14 @@ def _load_fleet(path: str, flying: bool = False):
     except PolicyError as exc:
         raise UsageError(f"{where}.models: {exc}") from None
     _check_actor_files(f"{where}.models", manifest)
-    spec = _input(f"{where}.spec", fleet.spec, SwarmSpec.from_toml) if fleet.spec else SwarmSpec()
+    spec = _input(f"{where}.spec", fleet.spec, SwarmSpec.from_toml, ("spec",)) if fleet.spec else SwarmSpec()
     if spec.hash != manifest.spec.hash:  # preflight refuses it too, once every radio link is up
         raise UsageError(f"{where}.spec: spec {spec.hash} ({fleet.spec or 'the default spec'}), but the models in "
                          f"{fleet.models} were exported for spec {manifest.spec.hash}: set fleet.spec to the spec "
                          f"they were trained on")
-    fence = _input(f"{where}.fence", fleet.fence, FenceConfig.from_toml)
+    fence = _input(f"{where}.fence", fleet.fence, FenceConfig.from_toml, ("fence",))
     if fleet.anchors:
-        _input(f"{where}.anchors", fleet.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence))
+        _input(f"{where}.anchors", fleet.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence), ("lps",))
     try:
         obstacles_from_fence(fence, spec)
     except SpecError as exc:

@@ -157,6 +157,12 @@ CASES = [
                                                                      "valid keys"], None),
     ("groundstation.cli", "demo --models M --flight-config DIR", ["--flight-config", "is a folder"], None),
     ("groundstation.cli", "demo --models M --spec BINTOML", ["--spec", "not valid TOML"], None),
+    ("groundstation.cli", "demo --models M --fence BINTOML", ["--fence", "not valid TOML"], None),
+    ("groundstation.cli", "demo --models M --fence TRAINKEY", ["--fence", "TRAINKEY", "no [fence] table"], None),
+    ("groundstation.cli", "demo --models M --anchors FENCEKEY", ["--anchors", "no [lps] table"], None),
+    ("groundstation.cli", "demo --models M --spec FENCEKEY", ["--spec", "no [spec] table"], None),
+    ("groundstation.cli", "demo --models M --flight-config FENCEKEY", ["--flight-config", "no [flight] or "
+                                                                                          "[separation] table"], None),
     ("groundstation.cli", "demo --models M --spec S2", ["--spec", "exported for spec", "leave --spec out"], None),
     ("groundstation.cli", "fly --fleet NONE", ["--fleet", "does not exist"], None),
     ("groundstation.cli", "fly --fleet NONE --duration 0", ["--duration", "'0'"], None),
