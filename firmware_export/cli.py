@@ -63,7 +63,7 @@ def add_c(sub: argparse._SubParsersAction) -> None:
                         "recorded from the simulator; other seeds than the --report parity check)")
     p.add_argument("--tanh", choices=TANHS, default="fast",
                    help="fast: rational approximation (error <= 5e-7, no libm); libm: tanhf (link -lm)")
-    p.add_argument("--spec-toml", type=in_file, default=None,
+    p.add_argument("--spec-toml", type=_spec_toml, default=None,
                    help="spec TOML ([spec] table) for models without spec metadata")
     p.add_argument("--role", default=None, help="pursuer|scout|evader, for models without role metadata")
     p.add_argument("--app", type=out_dir, default=None,
@@ -82,6 +82,21 @@ def _run_folder(text: str) -> Path:
     if p.exists() and not p.is_dir() and p.suffix != ".pt":
         raise argparse.ArgumentTypeError(f"{text!r} is a file, not a training run folder; give the folder that "
                                          f"`swarm-train train --out RUN` wrote (holding actors.pt)")
+    return p
+
+
+def _spec_toml(text: str) -> Path:
+    """An argparse type for ``--spec-toml``: a readable TOML file with a ``[spec]`` table (without one the spec's
+    defaults would be taken, and a wrong file would pass silently)."""
+    from runtime.spec import load_toml
+    p = in_file(text)
+    try:
+        doc = load_toml(p)
+    except SpecError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if "spec" not in doc:
+        raise argparse.ArgumentTypeError(f"{text!r} has no [spec] table: give the experiment TOML the model was "
+                                         f"trained on, e.g. configs/role_based.toml")
     return p
 
 

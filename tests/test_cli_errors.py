@@ -108,6 +108,8 @@ CASES = [
     ("firmware_export.cli", "c --model A --out TMP/c --calib-obs -1", ["--calib-obs", "'-1'"], "TMP/c"),
     ("firmware_export.cli", "c --model A --out TMP/c --spec-toml NONE", ["--spec-toml", "does not exist"], "TMP/c"),
     ("firmware_export.cli", "c --model A --out TMP/c --spec-toml BAD", ["--spec-toml", "not valid TOML"], "TMP/c"),
+    ("firmware_export.cli", "c --model A --out TMP/c --spec-toml FENCEKEY", ["--spec-toml", "no [spec] table"],
+     "TMP/c"),
     ("firmware_export.cli", "c --model A --out TMP/c --app FILE", ["--app", "is a file"], "TMP/c"),
     ("firmware_export.cli", "c --model FILE --out TMP/c", ["FILE", "swarm-export onnx"], "TMP/c"),
     ("firmware_export.cli", "c --model DIR --out TMP/c", ["DIR"], "TMP/c"),
