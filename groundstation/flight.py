@@ -862,7 +862,9 @@ class FlightSession:
 
 
 class JsonlRecorder:
-    """Writes flight-log rows as JSON lines (thread-safe) and keeps them for plotting."""
+    """Writes flight-log rows as JSON lines (thread-safe) and keeps them for plotting. Each row is written
+    whole and flushed, so a log cut short (an error, Ctrl-C, a killed process) ends with its last complete row:
+    a flight recorder keeps what happened up to the end, and never holds half a line."""
 
     def __init__(self, path: str | Path | None = None, keep: bool = True) -> None:
         self.path = Path(path) if path else None
@@ -881,6 +883,7 @@ class JsonlRecorder:
                 self.rows.append(row)
             if self._fh is not None:
                 self._fh.write(line + "\n")
+                self._fh.flush()
 
     def close(self) -> None:
         with self._lock:
