@@ -254,3 +254,16 @@ def test_atomic_write_replaces_whole_files_and_leaves_no_temporary(tmp_path, mon
         cliutil.write_text_atomic(target, "half")
     assert json.loads(target.read_text()) == {"a": "inf", "b": None}  # the old file, whole
     assert sorted(p.name for p in target.parent.iterdir()) == ["out.json"]
+
+
+def test_atomic_path_renames_on_success_and_removes_the_temporary_on_error(tmp_path):
+    target = tmp_path / "sub" / "plot.png"
+    with cliutil.atomic_path(target) as tmp:
+        assert tmp.parent == target.parent and tmp.suffix == ".png"  # savefig picks the format from it
+        tmp.write_bytes(b"whole")
+    assert target.read_bytes() == b"whole"
+    with pytest.raises(KeyboardInterrupt):
+        with cliutil.atomic_path(target) as tmp:
+            tmp.write_bytes(b"ha")  # Ctrl-C half-way through the drawing
+            raise KeyboardInterrupt
+    assert target.read_bytes() == b"whole" and sorted(p.name for p in target.parent.iterdir()) == ["plot.png"]

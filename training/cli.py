@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-from runtime.cliutil import ArgumentParser, check_out_dir, check_out_file, out_picture, positive_int
+from runtime.cliutil import ArgumentParser, atomic_path, check_out_dir, check_out_file, out_picture, positive_int
 from runtime.spec import SpecError
 
 DEFAULT_CONFIG = "configs/role_based.toml"
@@ -196,11 +196,13 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def _plot(cfg, policy, seed: int, out: str, title: str) -> None:
     from training.plots import plot_episode, record_episode
+    trace = record_episode(cfg, policy, seed)
     try:
-        path = plot_episode(record_episode(cfg, policy, seed), out, title)
+        with atomic_path(out) as tmp:  # never a half-drawn picture after an error or Ctrl-C
+            plot_episode(trace, tmp, title)
     except OSError as exc:
         raise UsageError(f"cannot write {out!r}: {exc.strerror or exc}") from None
-    print(f"wrote {path}")
+    print(f"wrote {out}")
 
 
 def _write_json(path: str, doc: dict) -> None:
