@@ -8,11 +8,13 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import signal
 import socket
 import sys
 import threading
 import time
+from pathlib import Path
 
 from groundstation.sim.swarm import DEFAULT_BASE_PORT, SimError, SimSwarm
 from runtime.cliutil import (EXIT_USAGE, ArgumentParser, check_in_file, int_in, models_dir, nonneg_int, out_file,
@@ -215,6 +217,13 @@ def _check_demo(args: argparse.Namespace) -> None:
     from groundstation.separation import SeparationConfig
     from runtime.policy import PolicyError, read_manifest
     from runtime.spec import SwarmSpec, load_toml
+    from groundstation.demo import DemoOptions
+    defaults = DemoOptions()
+    for option, name in (("--models", "models"), ("--fence", "fence"), ("--anchors", "anchors")):
+        value = getattr(args, name)
+        if value == getattr(defaults, name) and not Path(value).exists():
+            raise UsageError(f"{option}: the default {value!r} is relative to the repository root and is not in "
+                             f"{os.getcwd()}: run swarm-gs there or give {option} PATH")
     if not 0.0 <= args.loss < 1.0:
         raise UsageError(f"--loss: expected a probability in [0, 1), got {args.loss:g}")
     if args.kill_link is not None and args.kill_link[1] >= args.duration:

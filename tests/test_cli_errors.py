@@ -219,6 +219,18 @@ def test_a_missing_or_replaced_actor_fails_before_any_link_opens(damage, needle,
         assert option in err and needle in err and "pursuer_0.onnx" in err and "swarm-export onnx" in err, err
 
 
+@pytest.mark.parametrize("module, argv, option", [("groundstation.cli", ["demo"], "--models"),
+                                                  ("groundstation.cli", ["demo", "--models", MODELS], "--fence"),
+                                                  ("training.cli", ["evaluate", "--episodes", "1"], "--config"),
+                                                  ("training.cli", ["sweep", "--steps", "1"], "--config")])
+def test_a_default_relative_to_the_repository_names_its_option_elsewhere(module, argv, option, tmp_path, capsys,
+                                                                         monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rc, err = _run(module, argv, capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert option in err and str(tmp_path) in err and "Traceback" not in err, err
+
+
 def test_the_types_take_what_they_should():
     assert cliutil.probability("0") == 0.0 and cliutil.probability("1") == 1.0
     assert cliutil.float_in(0.0, 1.0, high_open=True)("0.999") == 0.999

@@ -263,12 +263,26 @@ def check_outputs(args: argparse.Namespace) -> None:
             raise UsageError(f"--out: {exc}") from None
 
 
+def check_config(args: argparse.Namespace) -> None:
+    """``--config`` (when the command reads it) is an existing file: else ``UsageError`` naming the option (the
+    defaults, e.g. configs/role_based.toml, are relative to the repository root)."""
+    path = getattr(args, "config", None)
+    learned = getattr(args, "run", None) or getattr(args, "models", None)  # their own config is used
+    if not isinstance(path, str) or getattr(args, "resume", False) or learned:
+        return
+    p = Path(path)
+    if not p.exists():
+        where = "" if p.is_absolute() else f" in {Path.cwd()} (the shipped configs are in the repository's configs/)"
+        raise UsageError(f"--config: {path!r} does not exist{where}: give --config PATH")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        check_config(args)
         check_outputs(args)
         return int(args.func(args) or 0)
     except (SpecError, UsageError) as exc:
