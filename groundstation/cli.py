@@ -167,6 +167,9 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=nonneg_int, default=d.seed, help="obstacles, start positions, noise (default 0)")
     p.add_argument("--base-port", type=port, default=None, help="UDP port of drone 0 (default: a free range)")
     _add_no_separation(p)
+    p.add_argument("--sim-in-process", action="store_true",
+                   help="run the simulated Crazyflies in the ground station's interpreter (default: a process of "
+                        "their own, as real drones are; in-process they share its GIL), for comparison")
     p.set_defaults(func=_run_demo)
 
 
@@ -262,7 +265,8 @@ def _run_demo(args: argparse.Namespace) -> int:
                        models=args.models, engine=args.engine, spec=args.spec, fence=args.fence, anchors=args.anchors,
                        flight=args.flight_config, seed=args.seed, json_path=_str(args.json), log_path=_str(args.log),
                        plot_path=_str(args.plot), base_port=args.base_port,
-                       telemetry_period_ms=args.telemetry_period_ms, separation=not args.no_separation)
+                       telemetry_period_ms=args.telemetry_period_ms, separation=not args.no_separation,
+                       sim_in_process=args.sim_in_process)
     try:
         res = run_demo(opts)
     except (DemoError, PolicyError, SpecError, PreflightError, SimError) as exc:
@@ -360,7 +364,7 @@ def _run_fly(args: argparse.Namespace) -> int:
     try:
         previous = signal.signal(signal.SIGINT, on_sigint)
         try:
-            res = fly(fleet, flight, args.duration, _str(args.log), stop, separation=separation)
+            res = fly(fleet, flight, args.duration, _str(args.log), stop, separation=separation, echo=print)
         finally:
             signal.signal(signal.SIGINT, previous)
     except _fleet_errors() as exc:
