@@ -32,6 +32,7 @@ def paths(tmp_path, monkeypatch):
     (tmp_path / "fence_key.toml").write_text("[fence]\nmarginn = 0.1\n")
     (tmp_path / "sep_key.toml").write_text("[separation]\nmin_dist = 0.5\n")
     (tmp_path / "train_key.toml").write_text("[train]\nstepz = 5\n")
+    (tmp_path / "train_seed.toml").write_text("[train]\nseed = -1\n")
     (tmp_path / "fleet_key.toml").write_text("[fleet]\ntelemetry_period = 20\n")
     (tmp_path / "fleet_models.toml").write_text(
         f'[fleet]\nmodels = "{tmp_path / "adir"}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
@@ -42,7 +43,8 @@ def paths(tmp_path, monkeypatch):
     return {"FILE": str(tmp_path / "afile"), "DIR": str(tmp_path / "adir"), "BAD": str(tmp_path / "bad.toml"),
             "NONE": str(tmp_path / "none"), "TMP": str(tmp_path), "BINTOML": str(tmp_path / "bin.toml"),
             "FENCEKEY": str(tmp_path / "fence_key.toml"), "SEPKEY": str(tmp_path / "sep_key.toml"),
-            "TRAINKEY": str(tmp_path / "train_key.toml"), "FLEETKEY": str(tmp_path / "fleet_key.toml"),
+            "TRAINKEY": str(tmp_path / "train_key.toml"), "TRAINSEED": str(tmp_path / "train_seed.toml"),
+            "FLEETKEY": str(tmp_path / "fleet_key.toml"),
             "FLEETMODELS": str(tmp_path / "fleet_models.toml"), "FLEETSPEC": str(tmp_path / "fleet_spec.toml")}
 
 
@@ -119,7 +121,11 @@ CASES = [
     ("firmware_export.cli", "onnx --run DIR --out TMP/o --seed -1", ["--seed", "'-1'"], "TMP/o"),
     ("runtime.cli", "run --models FILE", ["--models", "is a file", "swarm-export onnx"], None),
     ("training.cli", "train --config TRAINKEY --out TMP/r", ["TRAINKEY: train.stepz", "valid keys"], "TMP/r"),
-    ("training.cli", "train --config C --out TMP/r --seed -1", ["train.seed", ">= 0", "-1"], "TMP/r"),
+    ("training.cli", "train --config C --out TMP/r --seed -1", ["--seed", ">= 0", "-1"], "TMP/r"),
+    ("training.cli", "train --config TRAINSEED --out TMP/r", ["TRAINSEED: train.seed", ">= 0"], "TMP/r"),
+    ("training.cli", "evaluate --seed -5 --episodes 1", ["--seed", "'-5'", ">= 0"], None),
+    ("training.cli", "plot --seed -5 --out TMP/p.png", ["--seed", "'-5'"], "TMP/p.png"),
+    ("training.cli", "crossplay M --seed -5", ["--seed", ">= 0", "-5"], None),
     ("training.cli", "evaluate --config BINTOML --episodes 1", ["BINTOML", "not valid TOML"], None),
     ("training.cli", "evaluate --plot TMP/e.txt --episodes 1", ["--plot", "'.txt'", ".png"], "TMP/e.txt"),
     ("training.cli", "plot --out TMP/p.txt", ["--out", "'.txt'", ".png"], "TMP/p.txt"),

@@ -13,7 +13,8 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-from runtime.cliutil import ArgumentParser, atomic_path, check_out_dir, check_out_file, out_picture, positive_int
+from runtime.cliutil import (ArgumentParser, atomic_path, check_out_dir, check_out_file, nonneg_int, out_picture,
+                             positive_int)
 from runtime.spec import SpecError
 
 DEFAULT_CONFIG = "configs/role_based.toml"
@@ -71,7 +72,7 @@ def add_evaluate(sub: Any) -> None:
     _add_policy(p)
     p.add_argument("--episodes", type=_positive_int, default=200, metavar="N",
                    help="episodes per evaluated column (default 200)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="evaluation seed (default 0)")
+    p.add_argument("--seed", type=nonneg_int, default=0, metavar="S", help="evaluation seed (default 0)")
     p.add_argument("--n-envs", type=_positive_int, default=50, metavar="K",
                    help="episodes stepped together (default 50); the episodes drawn depend on it")
     p.add_argument("--json", metavar="PATH", help="write the metrics and the run's settings to this JSON file")
@@ -168,7 +169,7 @@ def add_plot(sub: Any) -> None:
                     "curves (rewards.png, distances.png, episode.png in --out, default RUN/plots/).")
     _add_config(p)
     _add_policy(p)
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="episode seed (default 0)")
+    p.add_argument("--seed", type=nonneg_int, default=0, metavar="S", help="episode seed (default 0)")
     p.add_argument("--out", metavar="PATH", help="PNG file to write (a folder with --run; default RUN/plots/)")
     p.add_argument("--run", metavar="RUN", help="a training run folder: plot its curves and its learned team")
     p.add_argument("--evader", metavar="SPEC", default="learned",
@@ -264,8 +265,11 @@ def check_outputs(args: argparse.Namespace) -> None:
 
 
 def check_config(args: argparse.Namespace) -> None:
-    """``--config`` (when the command reads it) is an existing file: else ``UsageError`` naming the option (the
-    defaults, e.g. configs/role_based.toml, are relative to the repository root)."""
+    """``--seed`` is >= 0 and ``--config`` (when the command reads it) is an existing file: else ``UsageError``
+    naming the option (the defaults, e.g. configs/role_based.toml, are relative to the repository root)."""
+    seed = getattr(args, "seed", None)
+    if isinstance(seed, int) and seed < 0:  # crossplay's and train's parsers take any int; numpy takes none < 0
+        raise UsageError(f"--seed: must be >= 0, got {seed}")
     path = getattr(args, "config", None)
     learned = getattr(args, "run", None) or getattr(args, "models", None)  # their own config is used
     if not isinstance(path, str) or getattr(args, "resume", False) or learned:
