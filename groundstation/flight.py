@@ -353,6 +353,39 @@ class FlightSession:
     def geofence_violations(self) -> int:
         return sum(self.geofence.stats(d).violations for d in self.drones)
 
+    def snapshot(self, events_since: int = 0, max_events: int = 100) -> dict[str, Any]:
+        """The session's state for observers (the live view): JSON-ready values. No drone's lock is taken, so an
+        observer never holds up a setpoint: every value read here is one attribute that its writer replaces
+        whole (statuses, setpoints, telemetry samples, the assignment), never mutates in place. ``events``: the
+        events from index ``events_since`` on (each with its index ``i``), the latest ``max_events`` of them."""
+        now = time.monotonic()
+        assignment = self.assignment
+        rnd = lambda v, n=4: None if v is None else [round(float(c), n) for c in v]  # noqa: E731
+        drones = []
+        for d in list(self.drones.values()):
+            tel = d.link.telemetry()
+            role = assignment.role_of_drone(d.id)
+            sp, sp_t, cmd_t = d.setpoint, d.setpoint_t, max(d.command_t, d.actor_since)
+            drones.append({
+                "id": d.id, "team": d.team, "role": role.label if role is not None else None,
+                "actor": assignment.by_drone.get(d.id), "status": d.status.value, "reason": d.reason,
+                "position": rnd(tel.position) if tel is not None else None,
+                "velocity": rnd(tel.velocity) if tel is not None else None,
+                "battery": round(float(tel.battery), 3) if tel is not None else None,
+                "link_quality": round(float(tel.link_quality), 3) if tel is not None else None,
+                "position_variance": (float(f"{max(tel.position_variance):.3g}")
+                                      if tel is not None and tel.position_variance else None),
+                "setpoint": rnd(sp), "setpoint_age": round(now - sp_t, 3) if math.isfinite(sp_t) else None,
+                "command_age": round(now - cmd_t, 3) if math.isfinite(cmd_t) else None,
+                "telemetry_age": round(min(d.link.telemetry_age(now), 999.0), 3),
+            })
+        n = len(self.events)
+        first = max(events_since, n - max_events, 0)
+        events = [{"i": i, "t": round(e.t - self._t0, 3), "drone": e.drone, "kind": e.kind, "detail": e.detail}
+                  for i, e in zip(range(first, n), self.events[first:n])]
+        return {"t": round(now - self._t0, 3), "mission": self._mission, "drones": drones, "events": events,
+                "n_events": n}
+
     # ---- preflight and roles -----------------------------------------------------------------------
 
     def preflight(self, spec_hash: str | None = None, models_spec_hash: str | None = None,
