@@ -261,7 +261,10 @@ def main(argv: list[str] | None = None) -> int:
     from runtime.policy import PolicyError
     try:
         return args.func(args)
-    except (PolicyError, SpecError) as exc:
+    except PolicyError as exc:  # every one is about the models folder
+        print(f"swarm-runtime {args.command}: error: --models: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except SpecError as exc:
         print(f"swarm-runtime {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except (RuntimeError, OSError) as exc:
