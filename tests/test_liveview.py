@@ -1,0 +1,205 @@
+"""The live view (``groundstation.liveview``) during real flights against simulated Crazyflies through cflib.
+
+A demo-like flight (``run_demo`` with 5 drones: 2 pursuers, 2 scouts, 1 evader) is shown in a ``LiveView``: its
+``/api/state`` is read, two WebSockets receive the pushed state at >= 10 Hz, a refused emergency stop (no
+confirmation) and an unknown drone change nothing, and "land all" through ``POST /api/land_all`` brings every
+drone down, which ends the demo's mission. A second, short hover flight checks that the confirmed emergency
+stop cuts every simulated drone's motors, and that a taken port is a one-line error naming --view.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+
+pytest.importorskip("cflib")
+pytest.importorskip("aiohttp")
+
+from flight_fixtures import open_sim_links, quick_flight, small_spec, wait_until, write_models  # noqa: E402
+from groundstation.demo import DemoError, DemoOptions, draw_obstacles, run_demo, start_positions  # noqa: E402
+from groundstation.flight import DroneStatus, FlightSession, close_links  # noqa: E402
+from groundstation.liveview import LiveView, SessionSource, ViewError, scene  # noqa: E402
+from groundstation.roles import PURSUER_TEAM  # noqa: E402
+from groundstation.safety import FenceConfig  # noqa: E402
+from groundstation.sim.swarm import SimSwarm, free_base_port  # noqa: E402
+
+
+def get_state(view: LiveView) -> dict:
+    with urllib.request.urlopen(view.url + "api/state", timeout=5) as r:
+        assert r.headers["Content-Type"].startswith("application/json")
+        return json.loads(r.read())
+
+
+def post(view: LiveView, path: str, body: dict | None = None) -> tuple[int, dict]:
+    req = urllib.request.Request(view.url + path.lstrip("/"), data=json.dumps(body or {}).encode(),
+                                 headers={"Content-Type": "application/json"}, method="POST")
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read())
+
+
+def receive(view: LiveView, seconds: float, tabs: int = 2) -> list[list[dict]]:
+    """The messages each of ``tabs`` WebSockets received over ``seconds`` (counted from the first message)."""
+    import aiohttp
+
+    async def one(session) -> list[dict]:
+        out = []
+        async with session.ws_connect(view.url.replace("http", "ws") + "ws") as ws:
+            first = json.loads((await ws.receive(timeout=5)).data)
+            t0 = time.monotonic()
+            out.append(first)
+            while time.monotonic() - t0 < seconds:
+                msg = await ws.receive(timeout=5)
+                out.append(json.loads(msg.data))
+        return out
+
+    async def main():
+        async with aiohttp.ClientSession() as session:
+            return await asyncio.gather(*(one(session) for _ in range(tabs)))
+
+    return asyncio.run(main())
+
+
+@pytest.fixture(scope="module")
+def demo_flight(tmp_path_factory):
+    """A 5-drone demo shown in a view; the test lands it from the view. Yields (view, box) with the demo's
+    result (or exception) in box once its thread ends."""
+    models = write_models(tmp_path_factory.mktemp("liveview-models") / "m", small_spec(), seed=2)
+    view = LiveView(port=0).start()
+    box: dict = {}
+
+    def fly():
+        try:
+            box["result"] = run_demo(DemoOptions(duration=40.0, models=str(models), seed=4), view=view)
+        except BaseException as exc:  # handed to the test
+            box["error"] = exc
+
+    thread = threading.Thread(target=fly, name="demo", daemon=True)
+    thread.start()
+    box["thread"] = thread
+    try:
+        yield view, box
+    finally:
+        if thread.is_alive():  # a failed test: land whatever flies, through the view
+            post(view, "/api/land_all")
+        thread.join(timeout=60)
+        view.stop()
+
+
+def test_state_websocket_and_land_all_from_the_view(demo_flight):
+    view, box = demo_flight
+    ids = [f"cf{i}" for i in range(5)]
+
+    def mission_flying() -> bool:
+        s = get_state(view)
+        return s["mode"] == "live" and s["mission"] and [d["status"] for d in s["drones"]] == ["flying"] * 5
+
+    assert wait_until(mission_flying, timeout=60, period=0.1), (get_state(view), box.get("error"))
+    s = get_state(view)
+    assert [d["id"] for d in s["drones"]] == ids
+    for d in s["drones"]:
+        for key in ("id", "role", "actor", "status", "position", "battery", "link_quality", "position_variance",
+                    "command_age", "telemetry_age"):
+            assert key in d, key
+        assert len(d["position"]) == 3 and d["position"][2] > 0.2 and 3.0 < d["battery"] < 4.3
+        assert 0.0 <= d["link_quality"] <= 1.0 and d["telemetry_age"] < 1.0
+    assert sorted(d["role"] for d in s["drones"]) == ["evader", "pursuer", "pursuer", "scout", "scout"]
+    sc = s["scene"]
+    assert len(sc["fence"]["polygon"]) >= 3 and sc["fence"]["margin"] > 0 and len(sc["keep_out"]) >= 1
+    assert len(sc["anchors"]) == 8 and sc["sensing_range"] > 0 and sc["arena"]["half_width"] > 0
+    assert any(e["kind"] == "mission_start" for e in s["events"])
+    assert set(s["controls"]) == {"land_all", "land", "emergency_stop"}
+    # the paper's metrics, live
+    assert wait_until(lambda: get_state(view)["metrics"].get("steps", 0) > 0, timeout=10, period=0.1)
+    m = get_state(view)["metrics"]
+    assert 0 < m["mean_min_dist"] <= m["mean_avg_dist"] <= m["mean_max_dist"]
+    assert 0 <= m["tracking_rate"] <= 1 and 0 < m["coverage"] <= 1
+
+    # two tabs at once, each >= 10 messages a second, the drones moving in them
+    frames0 = view.frames
+    tabs = receive(view, 1.0, tabs=2)
+    for msgs in tabs:
+        assert len(msgs) >= 10, len(msgs)
+        assert {len(m["drones"]) for m in msgs} == {5}
+        assert msgs[-1]["t"] > msgs[0]["t"]
+    assert view.frames - frames0 >= 10
+
+    # refused: an emergency stop without its confirmation, a drone that is not flown
+    code, out = post(view, "/api/emergency_stop", {})
+    assert code == 400 and "confirm" in out["error"]
+    code, out = post(view, "/api/emergency_stop", {"confirm": "yes"})
+    assert code == 400
+    code, out = post(view, "/api/land/cf99")
+    assert code == 400 and "cf99" in out["error"]
+    code, out = post(view, "/api/land_all", [1, 2])
+    assert code == 400
+    assert [d["status"] for d in get_state(view)["drones"]] == ["flying"] * 5
+
+    # land all, through the session
+    code, out = post(view, "/api/land_all")
+    assert code == 200 and out["ok"] and set(out["statuses"]) == set(ids)
+    assert wait_until(lambda: [d["status"] for d in get_state(view)["drones"]] == ["landed"] * 5, timeout=20,
+                      period=0.1), get_state(view)["drones"]
+    box["thread"].join(timeout=60)
+    assert "error" not in box, box.get("error")
+    res = box["result"]
+    assert res["landed"] == 5 and res["locked"] == 0 and set(res["final_status"].values()) == {"landed"}
+    assert res["mission_s"] < 30  # the land-all ended the 40 s mission
+    # the view keeps the final state, without controls
+    s = get_state(view)
+    assert s["controls"] == [] and [d["status"] for d in s["drones"]] == ["landed"] * 5
+    code, _ = post(view, "/api/land_all")
+    assert code == 409
+
+
+def test_emergency_stop_from_the_view_cuts_every_motor(tmp_path):
+    spec = small_spec()
+    obstacles = draw_obstacles(spec, seed=5)
+    fence = FenceConfig.from_spec(spec, obstacles)
+    n = 3
+    ids = [f"cf{i}" for i in range(n)]
+    with LiveView(port=0) as view, SimSwarm(n, base_port=free_base_port(n, seed=23), seed=5,
+                                            start_positions=start_positions(fence, n, seed=5)) as sims:
+        links = open_sim_links(sims.uris)
+        try:
+            session = FlightSession(dict(zip(ids, links)), {d: PURSUER_TEAM for d in ids}, fence, quick_flight())
+            view.attach(SessionSource(session, scene(fence)))
+            with session:
+                session.preflight()
+                session.takeoff()
+                assert session.flying() == ids
+                assert all(sims.truth(i).motors_on for i in range(n))
+                code, out = post(view, "/api/emergency_stop", {"confirm": True})
+                assert code == 200 and set(out["statuses"].values()) == {"stopped"}
+                assert wait_until(lambda: all(not sims.truth(i).motors_on for i in range(n)), timeout=5)
+                assert all(sims.truth(i).supervisor == "locked" for i in range(n))
+                assert session.statuses() == {d: DroneStatus.STOPPED for d in ids}
+                assert len(session.events_of("emergency_stop")) == 1
+                assert get_state(view)["events"][-1]["kind"] == "emergency_stop"
+        finally:
+            close_links(links)
+
+
+def test_a_taken_port_is_one_line_naming_view(tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        with pytest.raises(ViewError) as err:
+            LiveView(port=port).start()
+        msg = str(err.value)
+        assert f"--view {port}" in msg and "taken" in msg and "\n" not in msg
+        # the demo refuses before any simulator starts
+        models = write_models(tmp_path / "m", small_spec())
+        t0 = time.monotonic()
+        with pytest.raises(DemoError, match="--view"):
+            run_demo(DemoOptions(duration=1.0, models=str(models), view_port=port))
+        assert time.monotonic() - t0 < 10
