@@ -70,6 +70,9 @@ def test_fleet_file_errors_name_the_field(tmp_path):
         FleetConfig.from_toml(bad)
     fleet, flight = FleetConfig.from_toml(ROOT / "configs" / "fleet_example.toml")
     assert len(fleet.drones) == 4 and flight.speed_scale == 0.5 and fleet.engine == "onnxruntime"
+    # its paths are the file's own folder's, wherever it is run from
+    for path in (fleet.models, fleet.spec, fleet.fence, fleet.anchors):
+        assert Path(path).resolve().exists(), path
     sep = load_separation(ROOT / "configs" / "fleet_example.toml")
     assert sep.enabled and sep.min_distance == pytest.approx(0.35) and sep.capture_distance == 0.5
     bad.write_text('[fleet]\n[[fleet.drones]]\nid = "a"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n'

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from runtime.cliutil import write_text_atomic
 from runtime.spec import Role
 from training.checkpoint import save_actors
 from training.config import ExperimentConfig
@@ -193,10 +194,10 @@ class Trainer:
         if (self.ckpt_dir / "state.pt").exists():
             raise RunError(f"{self.out} already holds a run: pass --resume to continue it, or choose another --out")
         self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "config.toml").write_text(dump_toml(self.cfg.to_dict()))
+        write_text_atomic(self.out / "config.toml", dump_toml(self.cfg.to_dict()))
         run = {"git_revision": git_revision(), "command": sys.argv, "started_utc": _utc_now(),
                "spec_hash": self.spec.hash, "torch": torch.__version__}
-        (self.out / "run.json").write_text(json.dumps(run, indent=2) + "\n")
+        write_text_atomic(self.out / "run.json", json.dumps(run, indent=2) + "\n")
         with (self.out / "metrics.csv").open("w", newline="") as fh:
             csv.writer(fh).writerow(CSV_COLUMNS)
 
@@ -237,7 +238,7 @@ class Trainer:
                            f"to fine-tune")
         run = json.loads((self.out / "run.json").read_text())
         run["init_from"] = {"run": str(src), "at_step": self.env_step}
-        (self.out / "run.json").write_text(json.dumps(run, indent=2) + "\n")
+        write_text_atomic(self.out / "run.json", json.dumps(run, indent=2) + "\n")
         log.info("started %s from %s at env step %d (%d updates, %d transitions in the buffer)", self.out, src,
                  self.env_step, self.agent.updates, len(self.buffer))
 
@@ -247,7 +248,7 @@ class Trainer:
         run = json.loads((self.out / "run.json").read_text()) if (self.out / "run.json").is_file() else {}
         run.setdefault("resumed", []).append({"at_step": self.env_step, "utc": _utc_now(),
                                               "git_revision": git_revision(), "command": sys.argv})
-        (self.out / "run.json").write_text(json.dumps(run, indent=2) + "\n")
+        write_text_atomic(self.out / "run.json", json.dumps(run, indent=2) + "\n")
         log.info("resumed %s at env step %d (%d updates, %d transitions in the buffer)", self.out, self.env_step,
                  self.agent.updates, len(self.buffer))
 
@@ -410,7 +411,7 @@ class Trainer:
         summary = {**result.to_dict(), "total_env_steps": self.env_step, "total_frames": self.env_step * tc.n_envs,
                    "total_updates": self.agent.updates, "total_train_time_s": round(self.elapsed + session, 3),
                    "torch_threads": torch.get_num_threads(), "device": tc.device, "finished_utc": _utc_now()}
-        (self.out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        write_text_atomic(self.out / "summary.json", json.dumps(summary, indent=2) + "\n")
         return result
 
     def _record(self, win: _Window, rew: np.ndarray, done: np.ndarray, info: dict) -> None:
@@ -521,7 +522,7 @@ def train(cfg: ExperimentConfig, out: str | Path, resume: bool = False, progress
     ``init_from``: a run folder whose last checkpoint this new run starts from (a fine-tune)."""
     trainer = Trainer(cfg, out, resume=resume, init_from=init_from)
     if resume:  # a resumed run records the (possibly extended) config it continues with
-        (trainer.out / "config.toml").write_text(dump_toml(cfg.to_dict()))
+        write_text_atomic(trainer.out / "config.toml", dump_toml(cfg.to_dict()))
     return trainer.run(progress=progress)
 
 
@@ -574,10 +575,12 @@ def cmd_train(args: Any) -> int:
         logging.getLogger().setLevel(min(logging.getLogger().level or logging.INFO, logging.INFO))
         try:
             result = train(cfg, out, resume=args.resume, progress=not args.no_progress, init_from=args.init_from)
-        except RunError:
+        except BaseException:
+            # a run that never reached its first checkpoint leaves no half-made folder behind (whatever failed:
+            # a bad setting, no CUDA, Ctrl-C during start-up); one with a checkpoint is kept for --resume
             logging.getLogger().removeHandler(handler)
             handler.close()
-            if created:
+            if created and not (out / "checkpoints" / "state.pt").is_file():
                 import shutil
                 shutil.rmtree(out, ignore_errors=True)
             raise
