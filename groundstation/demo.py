@@ -38,7 +38,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -113,6 +113,9 @@ class DemoOptions:
     """True: the simulated Crazyflies in the ground station's interpreter (``--sim-in-process``; they then share
     its GIL, and its stalls pause their world). Default: a process of their own (``SimProcess``), as real drones
     are, talking CRTP over UDP."""
+    view_port: int | None = None
+    """Serve the live view (``groundstation.liveview``) on this port during the flight (``--view``); None: no
+    view, 0: any free port."""
 
 
 # ---- setup ---------------------------------------------------------------------------------------
@@ -261,6 +264,29 @@ class EpisodeMetrics:
                 self.acc.end_episodes(np.array([0]))
             return self.acc.summary()
 
+    def live(self) -> dict[str, float]:
+        """The metrics so far, the running episode included (left open), for the live view: every finished
+        episode and the running one weigh the same, as in ``summary``."""
+        with self._lock:  # a copy of a few numbers: the control thread's update waits microseconds at most
+            acc = self.acc
+            sums, steps = acc._sums[0].copy(), float(acc._sums[0, 5])
+            coverage = float((acc.visited[0] & acc.free[0]).sum() / acc.free_count[0]) if steps else None
+            records = list(acc.records)
+            captures = int(acc._captures[0]) + sum(r.captures for r in records)
+            n = self.steps
+        rows = [(r.min_dist, r.avg_dist, r.max_dist, r.tracking_rate, r.coverage) for r in records]
+        if steps:
+            m = sums / steps
+            rows.append((m[0], m[1], m[2], m[3], coverage))
+        out: dict[str, Any] = {"episodes": len(records), "steps": n, "captures": captures}
+        if rows:
+            avg = np.mean(np.array(rows, dtype=float), axis=0)
+            out.update({k: round(float(v), 4) for k, v in zip(("mean_min_dist", "mean_avg_dist", "mean_max_dist",
+                                                               "tracking_rate", "coverage"), avg)})
+            if steps:
+                out["coverage_instant"] = round(float(sums[4] / steps), 4)
+        return out
+
 
 # ---- the run -------------------------------------------------------------------------------------
 
@@ -294,8 +320,12 @@ def _open_links(uris: list[str], period_ms: int, link_loss_timeout: float) -> li
     return links
 
 
-def run_demo(opts: DemoOptions) -> dict[str, Any]:
-    """Fly the demo; returns the results (``RESULT_KEYS`` and more), also written to ``opts.json_path``."""
+def run_demo(opts: DemoOptions, echo: Callable[[str], None] | None = None, view=None) -> dict[str, Any]:
+    """Fly the demo; returns the results (``RESULT_KEYS`` and more), also written to ``opts.json_path``.
+    ``echo`` gets the progress lines (the live view's address); by default they are logged. ``view``: a started
+    ``liveview.LiveView`` to show the flight in (the caller stops it); else ``opts.view_port`` starts one for the
+    flight (a taken port is a ``DemoError`` before any simulator starts)."""
+    echo = echo or (lambda line: log.info("%s", line))
     if not 0.0 <= opts.loss < 1.0:
         raise DemoError(f"--loss: must be in [0, 1), got {opts.loss}")
     if not (opts.duration > 0 and math.isfinite(opts.duration)):
@@ -319,6 +349,26 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
     kill = None if opts.kill_link is None else (_resolve_drone(str(opts.kill_link[0]), ids), float(opts.kill_link[1]))
     base = opts.base_port if opts.base_port is not None else free_base_port(n, seed=opts.seed)
     starts = start_positions(fence, n, opts.seed)
+    own_view = None
+    if view is None and opts.view_port is not None:
+        from groundstation.liveview import LiveView, ViewError
+        try:
+            view = own_view = LiveView(opts.view_port).start()
+        except ViewError as exc:
+            raise DemoError(str(exc)) from None
+    if view is not None:
+        echo(f"live view: {view.url}")
+    try:
+        return _run(opts, spec, manifest, flight_cfg, separation, obstacles, fence, anchors, ids, teams, kill, base,
+                    starts, view)
+    finally:
+        if own_view is not None:
+            own_view.stop()
+
+
+def _run(opts, spec, manifest, flight_cfg, separation, obstacles, fence, anchors, ids, teams, kill, base, starts,
+         view) -> dict[str, Any]:
+    n = len(ids)
     recorder = JsonlRecorder(opts.log_path)
     metrics = EpisodeMetrics(spec, obstacles, separation.capture_distance)
     pairs = PairMonitor(separation.min_distance, 2 * max(spec.per_agent("radius")))
@@ -338,6 +388,9 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
             session = FlightSession(by_id, teams, fence, flight_cfg,
                                     actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents],
                                     record=recorder, latency_probe=True, separation=separation)
+            if view is not None:
+                from groundstation.liveview import SessionSource, scene
+                view.attach(SessionSource(session, scene(fence, anchors, spec), metrics=metrics.live))
             try:
                 _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result, pairs)
             except KeyboardInterrupt:
@@ -356,6 +409,8 @@ def run_demo(opts: DemoOptions) -> dict[str, Any]:
                       "detail": f"{result['drone_contacts']} drone contacts in the simulator",
                       "count": result["drone_contacts"], "contacts": result["drone_contact_events"]})
         finally:
+            if view is not None:
+                view.detach()  # the final state stays on the page, without controls
             close_links(links)
             if relay is not None:
                 relay.close()

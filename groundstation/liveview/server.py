@@ -197,8 +197,12 @@ class LiveView:
         self.source = source
 
     def detach(self) -> None:
-        """Keep showing the last state, with no controls (the flight is over)."""
-        last = self._last_state()
+        """Keep showing the source's last state, with no controls (the flight is over)."""
+        try:
+            last = self.source.state()
+        except Exception:  # a source that cannot answer any more: the last state pushed
+            log.exception("live view: the state source failed")
+            last = self._last_state()
         if last is not None:
             last["controls"] = []
             last["mission"] = False
@@ -268,9 +272,9 @@ class LiveView:
         app.router.add_post("/api/emergency_stop", self._post("emergency_stop"))
         app.router.add_post("/api/replay", self._post("replay"))
         app.router.add_static("/static/", STATIC, show_index=False)
-        runner = web.AppRunner(app, access_log=None)
+        runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
         await runner.setup()
-        site = web.SockSite(runner, self._sock, shutdown_timeout=1.0)
+        site = web.SockSite(runner, self._sock)
         await site.start()
         pusher = asyncio.ensure_future(self._push())
         self._ready.set()
