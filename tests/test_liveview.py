@@ -183,7 +183,9 @@ def test_emergency_stop_from_the_view_cuts_every_motor(tmp_path):
                 assert all(sims.truth(i).supervisor == "locked" for i in range(n))
                 assert session.statuses() == {d: DroneStatus.STOPPED for d in ids}
                 assert len(session.events_of("emergency_stop")) == 1
-                assert get_state(view)["events"][-1]["kind"] == "emergency_stop"
+                assert wait_until(lambda: any(e["kind"] == "emergency_stop" for e in get_state(view)["events"]),
+                                  timeout=5, period=0.05)
+                assert {d["status"] for d in get_state(view)["drones"]} == {"stopped"}
         finally:
             close_links(links)
 
