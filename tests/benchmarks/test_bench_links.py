@@ -20,7 +20,6 @@ import argparse
 import concurrent.futures
 import json
 import logging
-import multiprocessing as mp
 import os
 import platform
 import tempfile
@@ -38,15 +37,6 @@ one packet down) per USB round trip, and full-speed USB bulk transfers are sched
 estimate, not measured here (no radio on this machine)."""
 
 
-def _sim_process(n: int, base_port: int, conn) -> None:
-    from groundstation.sim.swarm import SimSwarm
-    with SimSwarm(n, base_port=base_port, seed=0, latency_probe=True) as sims:
-        conn.send("ready")
-        while conn.recv() == "report":
-            conn.send((sims.latency_samples(), sims.packet_counts()))
-    conn.close()
-
-
 class _SimInProcess:
     def __init__(self, n: int, base_port: int) -> None:
         from groundstation.sim.swarm import SimSwarm
@@ -60,27 +50,17 @@ class _SimInProcess:
 
 
 class _SimOtherProcess:
+    """The simulators in a process of their own (``SimProcess``, as ``swarm-gs demo`` runs them)."""
+
     def __init__(self, n: int, base_port: int) -> None:
-        ctx = mp.get_context("spawn")
-        self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_sim_process, args=(n, base_port, child), daemon=True)
-        self.proc.start()
-        if not self.conn.poll(30.0):
-            raise RuntimeError("simulator process did not start")
-        self.conn.recv()
+        from groundstation.sim.remote import SimProcess
+        self.sims = SimProcess(n, base_port=base_port, seed=0, latency_probe=True).start()
 
     def report(self):
-        self.conn.send("report")
-        return self.conn.recv()
+        return self.sims.latency_samples(), self.sims.packet_counts()
 
     def stop(self) -> None:
-        try:
-            self.conn.send("stop")
-        except OSError:
-            pass
-        self.proc.join(timeout=5.0)
-        if self.proc.is_alive():
-            self.proc.terminate()
+        self.sims.stop()
 
 
 def measure(n: int = 12, period_ms: int = 20, setpoint_hz: float = 50.0, duration: float = 10.0,
