@@ -278,7 +278,9 @@ def plot_training_curves(run: str | Path, out_dir: str | Path) -> list[Path]:
         ax.grid(alpha=0.3)
         ax.legend()
         fig.tight_layout()
-        fig.savefig(out_dir / name)
+        from runtime.cliutil import atomic_path
+        with atomic_path(out_dir / name) as tmp:  # a picture is whole or absent, never half-written
+            fig.savefig(tmp)
         plt.close(fig)
         return out_dir / name
 

@@ -126,7 +126,8 @@ def run_job(cfg_dict: dict[str, Any], out: str, eval_episodes: int, eval_evader:
     if eval_episodes > 0 and not result.interrupted:
         ev = evaluate_learned(run=out, evader=eval_evader, episodes=eval_episodes, seed=eval_seed, n_envs=50,
                               classical=True, progress=False)
-        Path(out, f"eval_{eval_evader}.json").write_text(json.dumps(ev, indent=2, sort_keys=True) + "\n")
+        from runtime.cliutil import write_text_atomic
+        write_text_atomic(Path(out, f"eval_{eval_evader}.json"), json.dumps(ev, indent=2, sort_keys=True) + "\n")
         res["eval"] = {k: v for k, v in ev.items() if k != "classical"}
         res["classical"] = ev["classical"]
     res["wall_s"] = round(time.perf_counter() - t0, 2)
