@@ -151,6 +151,7 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                    help="write the flight log (JSON lines) here")
     p.add_argument("--plot", type=out_picture, default=None, metavar="PNG",
                    help="draw the trajectories to this picture (.png, .pdf, .svg, ...)")
+    _add_view(p)
     p.add_argument("--models", default=d.models, help=f"models folder from swarm-export onnx (default {d.models})")
     p.add_argument("--engine", choices=ENGINES, default=d.engine,
                    help="how the actors run: onnxruntime (default) or compiled (the same ONNX actors compiled with "
@@ -171,6 +172,14 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                    help="run the simulated Crazyflies in the ground station's interpreter (default: a process of "
                         "their own, as real drones are; in-process they share its GIL), for comparison")
     p.set_defaults(func=_run_demo)
+
+
+def _add_view(p: argparse.ArgumentParser) -> None:
+    from groundstation.liveview.server import DEFAULT_PORT
+    p.add_argument("--view", nargs="?", type=port, const=DEFAULT_PORT, default=None, metavar="PORT",
+                   help=f"serve the live view on http://127.0.0.1:PORT/ during the flight (default port "
+                        f"{DEFAULT_PORT}): the arena, every drone, events, metrics; land all, land one, emergency "
+                        f"stop")
 
 
 def _add_no_separation(p: argparse.ArgumentParser) -> None:
@@ -266,9 +275,9 @@ def _run_demo(args: argparse.Namespace) -> int:
                        flight=args.flight_config, seed=args.seed, json_path=_str(args.json), log_path=_str(args.log),
                        plot_path=_str(args.plot), base_port=args.base_port,
                        telemetry_period_ms=args.telemetry_period_ms, separation=not args.no_separation,
-                       sim_in_process=args.sim_in_process)
+                       sim_in_process=args.sim_in_process, view_port=args.view)
     try:
-        res = run_demo(opts)
+        res = run_demo(opts, echo=lambda line: print(line, flush=True))
     except (DemoError, PolicyError, SpecError, PreflightError, SimError) as exc:
         print(f"swarm-gs demo: error: {exc}", file=sys.stderr)
         return 2
@@ -330,6 +339,7 @@ def _add_fly(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=positive_float, default=60.0, help="mission time [s] (default 60)")
     p.add_argument("--log", type=out_file, default=None, metavar="PATH",
                    help="write the flight log (JSON lines) here")
+    _add_view(p)
     _add_no_separation(p)
     p.set_defaults(func=_run_fly)
 
@@ -338,8 +348,9 @@ def _fleet_errors():
     from groundstation.flight import PreflightError
     from groundstation.link import LinkError
     from runtime.policy import PolicyError
+    from groundstation.liveview.server import ViewError
     from runtime.spec import SpecError
-    return (PreflightError, LinkError, PolicyError, SpecError)
+    return (PreflightError, LinkError, PolicyError, SpecError, ViewError)
 
 
 def _run_fly(args: argparse.Namespace) -> int:
@@ -364,7 +375,8 @@ def _run_fly(args: argparse.Namespace) -> int:
     try:
         previous = signal.signal(signal.SIGINT, on_sigint)
         try:
-            res = fly(fleet, flight, args.duration, _str(args.log), stop, separation=separation, echo=print)
+            res = fly(fleet, flight, args.duration, _str(args.log), stop, separation=separation, echo=print,
+                      view_port=args.view)
         finally:
             signal.signal(signal.SIGINT, previous)
     except _fleet_errors() as exc:

@@ -164,9 +164,11 @@ def obstacles_from_fence(fence: FenceConfig, spec: SwarmSpec) -> np.ndarray:
 
 def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str | None = None,
         stop: threading.Event | None = None, echo: Callable[[str], None] | None = None,
-        separation: SeparationConfig = SeparationConfig()) -> dict[str, Any]:
+        separation: SeparationConfig = SeparationConfig(), view_port: int | None = None) -> dict[str, Any]:
     """Fly the fleet's mission for ``duration`` s (or until ``stop`` is set), then land everyone. ``echo`` gets
-    the progress lines (the roles, who flies); by default they are logged, and a CLI passes ``print``."""
+    the progress lines (the roles, who flies); by default they are logged, and a CLI passes ``print``.
+    ``view_port``: serve the live view (``groundstation.liveview``) there during the flight; a taken port is a
+    ``ViewError`` before any radio link opens. The view's land and stop buttons call the session's methods."""
     echo = echo or (lambda line: log.info("%s", line))
     spec = SwarmSpec.from_toml(fleet.spec) if fleet.spec else SwarmSpec()
     manifest = read_manifest(fleet.models)
@@ -175,13 +177,34 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
         AnchorLayout.from_toml(fleet.anchors, fence=fence)
     obstacles = obstacles_from_fence(fence, spec)
     teams = {d.id: d.team for d in fleet.drones}
+    view = None
+    if view_port is not None:
+        from groundstation.liveview import LiveView
+        view = LiveView(view_port).start()
+        echo(f"live view: {view.url}")
+    try:
+        return _fly(fleet, flight, duration, log_path, stop, echo, separation, spec, manifest, fence, obstacles,
+                    teams, view)
+    finally:
+        if view is not None:
+            view.stop()
+
+
+def _fly(fleet, flight, duration, log_path, stop, echo, separation, spec, manifest, fence, obstacles, teams,
+         view) -> dict[str, Any]:
+    from groundstation.demo import EpisodeMetrics
     recorder = JsonlRecorder(log_path, keep=False)
     stop = stop or threading.Event()
+    metrics = EpisodeMetrics(spec, obstacles, separation.capture_distance)  # the paper's metrics, live in the view
     links = open_fleet(fleet, flight.link_loss_timeout)
     try:
         session = FlightSession(links, teams, fence, flight,
                                 actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents], record=recorder,
                                 separation=separation)
+        if view is not None:
+            from groundstation.liveview import SessionSource, scene
+            anchors = AnchorLayout.from_toml(fleet.anchors, fence=fence) if fleet.anchors else None
+            view.attach(SessionSource(session, scene(fence, anchors, spec), metrics=metrics.live))
         with session:
             session.preflight(spec_hash=spec.hash, models_spec_hash=manifest.spec.hash,
                               require_all=fleet.require_all)
@@ -189,7 +212,8 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
             session.assign_roles()
             echo(f"roles: {session.assignment.by_drone}")
             # built on the ground: numba compiles the encoders and every actor runs once before any drone flies
-            pilot = AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles)
+            pilot = AgentPilot(session, spec, {p.agent_id: p for p in pols}, obstacles,
+                               on_step=metrics if view is not None else None)  # live metrics for the view
             session.takeoff()
             echo(f"flying: {', '.join(session.flying())}")
             with pilot:
@@ -204,6 +228,8 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
                 "events": [(round(e.t - session._t0, 3), e.drone, e.kind, e.detail) for e in session.events
                            if e.kind != "status"]}
     finally:
+        if view is not None:
+            view.detach()
         close_links(links.values())
         recorder.close()
 

@@ -205,3 +205,67 @@ def test_a_taken_port_is_one_line_naming_view(tmp_path):
         with pytest.raises(DemoError, match="--view"):
             run_demo(DemoOptions(duration=1.0, models=str(models), view_port=port))
         assert time.monotonic() - t0 < 10
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_fly_view_lands_a_fleet_and_a_taken_port_is_refused(tmp_path, capsys):
+    from pathlib import Path
+
+    from groundstation import cli
+    root = Path(__file__).resolve().parents[1]
+    spec = small_spec()
+    models = write_models(tmp_path / "models", spec, seed=4)
+    (tmp_path / "spec.toml").write_text("[spec.team]\nn_pursuers = 2\nn_scouts = 2\nn_evaders = 1\n")
+    fence = FenceConfig.from_toml(root / "configs" / "fence.toml")
+    n = 3
+    with SimSwarm(n, base_port=free_base_port(n, seed=29), seed=4, start_positions=start_positions(fence, n, 4)) \
+            as sims:
+        drones = "".join(f'[[fleet.drones]]\nid = "cf{i}"\nuri = "{u}"\nteam = "{"evader" if i == 2 else "pursuer"}"\n'
+                         for i, u in enumerate(sims.uris))
+        fleet = tmp_path / "fleet.toml"
+        fleet.write_text(f'[fleet]\nmodels = "{models}"\nspec = "{tmp_path / "spec.toml"}"\n'
+                         f'fence = "{root / "configs" / "fence.toml"}"\n'
+                         f'anchors = "{root / "configs" / "lps_anchors.toml"}"\n{drones}'
+                         "[flight]\nheight = 0.5\ntakeoff_duration = 1.0\ntakeoff_stagger = 0.05\nland_speed = 0.5\n")
+        # a taken port: one line naming --view, before any link opens
+        with socket.socket() as taken:
+            taken.bind(("127.0.0.1", 0))
+            taken.listen(1)
+            busy = taken.getsockname()[1]
+            assert cli.main(["fly", "--fleet", str(fleet), "--duration", "1", "--view", str(busy)]) == 2
+            err = capsys.readouterr().err
+            assert f"--view {busy}" in err and "taken" in err and err.count("\n") == 1
+            assert all(not sims.truth(i).motors_on for i in range(n))
+        port = _free_port()
+        view = LiveView(port=port)  # only its url: the CLI's own view serves
+        box: dict = {}
+
+        def operator():  # the CLI flies on the main thread (its Ctrl-C handler); the "browser" is this thread
+            def flying() -> bool:
+                try:
+                    s = get_state(view)
+                except OSError:
+                    return False
+                box["last"] = s
+                return s["mode"] == "live" and s["mission"] and {d["status"] for d in s["drones"]} == {"flying"}
+            box["flying"] = wait_until(flying, timeout=30, period=0.1)
+            box["land_all"] = post(view, "/api/land_all")  # also when the wait failed: never leave them up
+
+        watcher = threading.Thread(target=operator, daemon=True)
+        watcher.start()
+        t0 = time.monotonic()
+        box["rc"] = cli.main(["fly", "--fleet", str(fleet), "--duration", "30", "--view", str(port)])
+        assert time.monotonic() - t0 < 25  # the land-all ended the 30 s mission
+        watcher.join(timeout=10)
+        assert box["flying"], box.get("last")
+        assert "metrics" in box["last"] and len(box["last"]["drones"]) == n
+        assert box["land_all"][0] == 200
+        assert box["rc"] == 0
+        out = capsys.readouterr().out
+        assert f"live view: http://127.0.0.1:{port}/" in out and "'cf2': 'landed'" in out
+        assert all(not sims.truth(i).motors_on for i in range(n))
