@@ -1,0 +1,105 @@
+"""The live view's page in a real browser: Debian's headless Chromium driven by Selenium through the system
+chromedriver (no browser download). During a short demo (5 simulated Crazyflies through cflib) the page draws
+every drone, its table updates, the emergency stop asks for a confirmation, and "Land all" lands every drone;
+a screenshot of the flight is written to results/liveview.png.
+"""
+from __future__ import annotations
+
+import shutil
+import threading
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("cflib")
+pytest.importorskip("aiohttp")
+
+CHROMIUM = next((p for p in (shutil.which("chromium"), shutil.which("chromium-browser"), "/usr/bin/chromium")
+                 if p and Path(p).is_file()), None)
+CHROMEDRIVER = next((p for p in (shutil.which("chromedriver"), "/usr/bin/chromedriver")
+                     if p and Path(p).is_file()), None)
+if CHROMIUM is None or CHROMEDRIVER is None:
+    pytest.skip("no chromium / chromedriver (apt-get install chromium chromium-driver)", allow_module_level=True)
+webdriver = pytest.importorskip("selenium.webdriver")
+
+from flight_fixtures import small_spec, wait_until, write_models  # noqa: E402
+from groundstation.demo import DemoOptions, run_demo  # noqa: E402
+from groundstation.liveview import LiveView  # noqa: E402
+from test_liveview import post  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+SCREENSHOT = ROOT / "results" / "liveview.png"
+
+
+@pytest.fixture
+def browser():
+    from selenium.webdriver.chrome.service import Service
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1400,1300", "--disable-extensions"):
+        opts.add_argument(arg)
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def test_page_draws_the_swarm_updates_and_lands_it(browser, tmp_path):
+    from selenium.webdriver.common.by import By
+    models = write_models(tmp_path / "models", small_spec(), seed=3)
+    box: dict = {}
+    with LiveView(port=0) as view:
+        def fly():
+            try:
+                box["result"] = run_demo(DemoOptions(duration=40.0, models=str(models), seed=6), view=view)
+            except BaseException as exc:  # handed to the test
+                box["error"] = exc
+
+        thread = threading.Thread(target=fly, name="demo", daemon=True)
+        thread.start()
+        try:
+            browser.get(view.url)
+            canvas = browser.find_element(By.ID, "arena")
+
+            def statuses() -> list[str]:
+                return [tr.get_attribute("data-status") for tr in browser.find_elements(By.CSS_SELECTOR,
+                                                                                       "#drones tbody tr")]
+
+            assert wait_until(lambda: statuses() == ["flying"] * 5 and canvas.get_attribute("data-drones") == "5",
+                              timeout=60, period=0.2), (statuses(), box.get("error"))
+            # the table updates: the positions change from one second to the next, frames keep coming
+            cell = "#drones tbody tr[data-drone='cf0'] td:nth-child(10)"
+            first, frames = browser.find_element(By.CSS_SELECTOR, cell).text, int(canvas.get_attribute("data-frames"))
+            assert wait_until(lambda: browser.find_element(By.CSS_SELECTOR, cell).text != first, timeout=5,
+                              period=0.1)
+            assert wait_until(lambda: int(canvas.get_attribute("data-frames")) >= frames + 10, timeout=5, period=0.1)
+            roles = {tr.find_elements(By.TAG_NAME, "td")[1].text
+                     for tr in browser.find_elements(By.CSS_SELECTOR, "#drones tbody tr")}
+            assert roles == {"pursuer", "scout", "evader"}
+            assert browser.find_elements(By.CSS_SELECTOR, "#metrics tr[data-metric='mean_avg_dist']")
+            assert browser.find_elements(By.CSS_SELECTOR, "#events li")  # mission_start, roles_assigned, ...
+            # the emergency stop asks first; cancel leaves everyone flying
+            confirm = browser.find_element(By.ID, "estop-confirm")
+            assert not confirm.is_displayed()
+            browser.find_element(By.ID, "estop").click()
+            assert wait_until(confirm.is_displayed, timeout=2, period=0.05)
+            browser.find_element(By.ID, "estop-no").click()
+            assert wait_until(lambda: not confirm.is_displayed(), timeout=2, period=0.05)
+            SCREENSHOT.parent.mkdir(exist_ok=True)
+            assert browser.save_screenshot(str(SCREENSHOT))
+            assert statuses() == ["flying"] * 5
+            # land all from the page
+            browser.find_element(By.ID, "land-all").click()
+            assert wait_until(lambda: statuses() == ["landed"] * 5, timeout=30, period=0.2), statuses()
+            thread.join(timeout=60)
+            assert "error" not in box, box.get("error")
+            assert box["result"]["landed"] == 5 and set(box["result"]["final_status"].values()) == {"landed"}
+            # the flight is over: the buttons are off
+            assert wait_until(lambda: not browser.find_element(By.ID, "land-all").is_enabled(), timeout=5, period=0.1)
+        finally:
+            if thread.is_alive():
+                post(view, "/api/land_all")
+                thread.join(timeout=60)
+    assert SCREENSHOT.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
