@@ -148,7 +148,8 @@ function updateMetrics() {
     if (!(k in m)) continue;
     const tr = document.createElement("tr");
     tr.dataset.metric = k;
-    tr.innerHTML = `<td>${label}</td><td class="num">${fmt(m[k], 3)}</td>`;
+    const digits = ["captures", "episodes", "steps"].includes(k) ? 0 : 3;
+    tr.innerHTML = `<td>${label}</td><td class="num">${fmt(m[k], digits)}</td>`;
     body.appendChild(tr);
   }
 }
