@@ -148,7 +148,8 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                    metavar="MS", help=f"telemetry period per drone [ms] (default {d.telemetry_period_ms})")
     p.add_argument("--json", type=out_file, default=None, metavar="PATH", help="write the results to this JSON file")
     p.add_argument("--log", type=out_file, default=None, metavar="PATH",
-                   help="write the flight log (JSON lines) here")
+                   help="write the flight log here: MCAP for Foxglove when PATH ends in .mcap, else JSON lines "
+                        "(.jsonl)")
     p.add_argument("--plot", type=out_picture, default=None, metavar="PNG",
                    help="draw the trajectories to this picture (.png, .pdf, .svg, ...)")
     _add_view(p)
@@ -338,7 +339,8 @@ def _add_fly(subparsers: argparse._SubParsersAction) -> None:
     _add_fleet_arg(p)
     p.add_argument("--duration", type=positive_float, default=60.0, help="mission time [s] (default 60)")
     p.add_argument("--log", type=out_file, default=None, metavar="PATH",
-                   help="write the flight log (JSON lines) here")
+                   help="write the flight log here: MCAP for Foxglove when PATH ends in .mcap, else JSON lines "
+                        "(.jsonl)")
     _add_view(p)
     _add_no_separation(p)
     p.set_defaults(func=_run_fly)

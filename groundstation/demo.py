@@ -42,7 +42,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from groundstation.flight import FlightConfig, FlightSession, JsonlRecorder, close_links
+from groundstation.flight import FlightConfig, FlightSession, close_links
 from groundstation.link import LinkError, open_link
 from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
@@ -65,6 +65,10 @@ RESULT_KEYS = ("mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate
 LANDED_Z = 0.05
 """A simulated drone at or below this height with its motors off has landed [m] (``landed``; ``locked`` counts
 those of them whose firmware cut the motors instead: a watchdog after link loss, or an emergency stop)."""
+
+
+METRICS_PERIOD = 1.0
+"""How often the demo writes the metrics so far to the flight log (an ``event: metrics`` row) [s]."""
 
 
 class DemoError(RuntimeError):
@@ -368,8 +372,11 @@ def run_demo(opts: DemoOptions, echo: Callable[[str], None] | None = None, view=
 
 def _run(opts, spec, manifest, flight_cfg, separation, obstacles, fence, anchors, ids, teams, kill, base, starts,
          view) -> dict[str, Any]:
+    from groundstation.liveview.server import scene
+    from groundstation.mcap_log import open_recorder
     n = len(ids)
-    recorder = JsonlRecorder(opts.log_path)
+    the_scene = scene(fence, anchors, spec)
+    recorder = open_recorder(opts.log_path, the_scene)  # .mcap: MCAP for Foxglove, else JSON lines
     metrics = EpisodeMetrics(spec, obstacles, separation.capture_distance)
     pairs = PairMonitor(separation.min_distance, 2 * max(spec.per_agent("radius")))
     t_start = time.monotonic()
@@ -389,10 +396,10 @@ def _run(opts, spec, manifest, flight_cfg, separation, obstacles, fence, anchors
                                     actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents],
                                     record=recorder, latency_probe=True, separation=separation)
             if view is not None:
-                from groundstation.liveview import SessionSource, scene
-                view.attach(SessionSource(session, scene(fence, anchors, spec), metrics=metrics.live))
+                from groundstation.liveview import SessionSource
+                view.attach(SessionSource(session, the_scene, metrics=metrics.live))
             try:
-                _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result, pairs)
+                _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result, pairs, recorder)
             except KeyboardInterrupt:
                 _wait_on_ground(sims, 4.0)
                 on_ground = sum(1 for tr in sims.truths() if _on_ground(tr))
@@ -423,7 +430,7 @@ def _run(opts, spec, manifest, flight_cfg, separation, obstacles, fence, anchors
 
 
 def _fly(opts, spec, session: FlightSession, sims: "SimSwarm | SimProcess", links, ids, obstacles, metrics, kill, result,
-         pairs: "PairMonitor") -> None:
+         pairs: "PairMonitor", record: Callable[[dict], None] | None = None) -> None:
     """Preflight to landing (the session lands everyone on the way out, whatever happens)."""
     manifest_hash = read_manifest(opts.models).spec.hash
     with session:
@@ -441,7 +448,12 @@ def _fly(opts, spec, session: FlightSession, sims: "SimSwarm | SimProcess", link
             result["startup_s"] = round(t_mission - t_ready, 3)
             sent0 = [link.stats() for link in links]
             killed = False
+            next_metrics = time.monotonic() + METRICS_PERIOD
             while time.monotonic() - t_mission < opts.duration:
+                if record is not None and time.monotonic() >= next_metrics:  # the metrics so far, in the log
+                    next_metrics += METRICS_PERIOD
+                    record({"t": round(session.time(), 4), "event": "metrics", "drone": None, "detail": "",
+                            **metrics.live()})
                 if kill is not None and not killed and time.monotonic() - t_mission >= kill[1]:
                     sims.kill_link(ids.index(kill[0]))
                     killed = True

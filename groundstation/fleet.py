@@ -21,7 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from groundstation.flight import FlightConfig, FlightSession, JsonlRecorder, close_links
+from groundstation.flight import FlightConfig, FlightSession, close_links
 from groundstation.link import FlightState, Link, LinkError, open_link
 from groundstation.mission import AgentPilot
 from groundstation.positioning import AnchorLayout
@@ -193,7 +193,11 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
 def _fly(fleet, flight, duration, log_path, stop, echo, separation, spec, manifest, fence, obstacles, teams,
          view) -> dict[str, Any]:
     from groundstation.demo import EpisodeMetrics
-    recorder = JsonlRecorder(log_path, keep=False)
+    from groundstation.liveview.server import scene
+    from groundstation.mcap_log import open_recorder
+    anchors = AnchorLayout.from_toml(fleet.anchors, fence=fence) if fleet.anchors else None
+    the_scene = scene(fence, anchors, spec)
+    recorder = open_recorder(log_path, the_scene, keep=False)  # .mcap: MCAP for Foxglove, else JSON lines
     stop = stop or threading.Event()
     metrics = EpisodeMetrics(spec, obstacles, separation.capture_distance)  # the paper's metrics, live in the view
     links = open_fleet(fleet, flight.link_loss_timeout)
@@ -202,9 +206,8 @@ def _fly(fleet, flight, duration, log_path, stop, echo, separation, spec, manife
                                 actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents], record=recorder,
                                 separation=separation)
         if view is not None:
-            from groundstation.liveview import SessionSource, scene
-            anchors = AnchorLayout.from_toml(fleet.anchors, fence=fence) if fleet.anchors else None
-            view.attach(SessionSource(session, scene(fence, anchors, spec), metrics=metrics.live))
+            from groundstation.liveview import SessionSource
+            view.attach(SessionSource(session, the_scene, metrics=metrics.live))
         with session:
             session.preflight(spec_hash=spec.hash, models_spec_hash=manifest.spec.hash,
                               require_all=fleet.require_all)

@@ -74,11 +74,12 @@ def demo_flight(tmp_path_factory):
     result (or exception) in box once its thread ends."""
     models = write_models(tmp_path_factory.mktemp("liveview-models") / "m", small_spec(), seed=2)
     view = LiveView(port=0).start()
-    box: dict = {}
+    box: dict = {"log": tmp_path_factory.mktemp("liveview-log") / "flight.mcap"}
 
     def fly():
         try:
-            box["result"] = run_demo(DemoOptions(duration=40.0, models=str(models), seed=4), view=view)
+            box["result"] = run_demo(DemoOptions(duration=40.0, models=str(models), seed=4,
+                                                 log_path=str(box["log"])), view=view)
         except BaseException as exc:  # handed to the test
             box["error"] = exc
 
@@ -158,6 +159,13 @@ def test_state_websocket_and_land_all_from_the_view(demo_flight):
     assert s["controls"] == [] and [d["status"] for d in s["drones"]] == ["landed"] * 5
     code, _ = post(view, "/api/land_all")
     assert code == 409
+    # the demo's --log flight.mcap: the scene first, the metrics every second, every drone's rows
+    from groundstation.mcap_log import read_log
+    rows = read_log(box["log"])
+    assert rows[0]["event"] == "scene" and rows[0]["scene"] == s["scene"]
+    assert any(r.get("event") == "metrics" and "mean_avg_dist" in r for r in rows)
+    assert {r["drone"] for r in rows if "event" not in r} == set(ids)
+    assert any(r.get("event") == "status" and "live view: land all" in r["detail"] for r in rows)
 
 
 def test_emergency_stop_from_the_view_cuts_every_motor(tmp_path):
