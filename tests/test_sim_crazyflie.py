@@ -93,7 +93,7 @@ def test_malformed_packets_are_dropped_and_the_server_keeps_answering(sims):
 
 
 def test_busy_port_is_a_named_error(sims):
-    with pytest.raises(SimError, match="another simulator"):
+    with pytest.raises(SimError, match="the port is taken .*--base-port"):
         SimSwarm(1, base_port=sims.base_port).start()
 
 

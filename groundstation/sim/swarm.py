@@ -18,6 +18,7 @@ pursuer radius): both crash, as hardware would, counted once per contact.
 """
 from __future__ import annotations
 
+import errno
 import logging
 import selectors
 import socket
@@ -149,10 +150,15 @@ class SimSwarm:
                 sock.setblocking(False)
                 self._selector.register(sock, selectors.EVENT_READ, i)
         except OSError as exc:
+            where = f"{self.host}:{self.base_port + len(self._sockets) - 1}"
             self._close_sockets()
-            raise SimError(f"cannot bind UDP {self.host}:{self.base_port + len(self._sockets) - 1} ({exc}): "
-                           f"another simulator is running there; pick another base port "
-                           f"(swarm-gs sim --base-port P)") from exc
+            if exc.errno == errno.EADDRINUSE:
+                raise SimError(f"cannot bind UDP {where}: the port is taken (another simulator?); pick another "
+                               f"base port (swarm-gs sim --base-port P)") from exc
+            if exc.errno == errno.EADDRNOTAVAIL:
+                raise SimError(f"cannot bind UDP {where}: {self.host} is not an address of this machine; use "
+                               f"127.0.0.1 or one of its own addresses (swarm-gs sim --host H)") from exc
+            raise SimError(f"cannot bind UDP {where}: {exc.strerror or exc}; check --host and --base-port") from exc
         self._thread = threading.Thread(target=self._run, name="SimSwarm", daemon=True)
         self._thread.start()
         logger.info("simulating %d Crazyflies on %s:%d-%d", self.n, self.host, self.base_port,
