@@ -434,7 +434,87 @@ def _run_status(args: argparse.Namespace) -> int:
     return 0
 
 
-SUBCOMMANDS = (_add_sim, _add_demo, _add_fly, _add_land, _add_status)
+def _add_replay(subparsers: argparse._SubParsersAction) -> None:
+    from groundstation.liveview.server import DEFAULT_PORT
+    from runtime.cliutil import float_in, in_file
+    p = subparsers.add_parser("replay", help="play a flight log (JSON lines or MCAP) into the live page",
+                              description="Serve the live page and play LOG (written by --log of demo or fly) into "
+                                          "it, with pause, seek and speed on the page. Ctrl-C stops.")
+    p.add_argument("log", type=in_file, metavar="LOG", help="flight log: .jsonl or .mcap")
+    p.add_argument("--view", type=port, default=DEFAULT_PORT, metavar="PORT",
+                   help=f"serve the page on http://127.0.0.1:PORT/ (default {DEFAULT_PORT})")
+    p.add_argument("--speed", type=positive_float, default=1.0, help="replay time per wall time (default 1)")
+    p.add_argument("--start", type=float_in(0.0, unit="s"), default=0.0, help="start this many s into the log")
+    p.add_argument("--once", action="store_true",
+                   help="exit when the log has played to its end (default: keep serving until Ctrl-C)")
+    p.set_defaults(func=_run_replay)
+
+
+def _read_log(path) -> list:
+    from groundstation.mcap_log import LogError, read_log
+    try:
+        return read_log(path)
+    except LogError as exc:
+        raise UsageError(f"LOG: {exc}") from None
+
+
+def _run_replay(args: argparse.Namespace) -> int:
+    from groundstation.liveview import LiveView, ViewError
+    from groundstation.mcap_log import LogError
+    from groundstation.replay import ReplaySource
+    rows = _read_log(args.log)
+    try:
+        source = ReplaySource(rows, speed=args.speed, start=args.start)
+    except LogError as exc:
+        raise UsageError(f"LOG {args.log}: {exc}") from None
+    try:
+        view = LiveView(args.view).start()
+    except ViewError as exc:
+        raise UsageError(str(exc)) from None
+    try:
+        view.attach(source)
+        print(f"live view: {view.url} (replaying {args.log}, {source.duration:.1f} s, {len(source.ids)} drones; "
+              f"Ctrl-C stops)", flush=True)
+        while not (args.once and source.finished):
+            time.sleep(0.1)
+        time.sleep(2.0 / view.rate)  # the last state out to the open pages
+    finally:
+        view.stop()
+    return 0
+
+
+def _add_report(subparsers: argparse._SubParsersAction) -> None:
+    from runtime.cliutil import in_file
+    p = subparsers.add_parser("report", help="the paper's metrics and the trajectory picture from a flight log",
+                              description="Recompute the paper's metrics (distance to targets, tracking, coverage) "
+                                          "from the positions in LOG (.jsonl or .mcap) and draw the trajectories.")
+    p.add_argument("log", type=in_file, metavar="LOG", help="flight log: .jsonl or .mcap")
+    p.add_argument("--plot", type=out_picture, default=None, metavar="PNG", help="draw the trajectories here")
+    p.add_argument("--json", type=out_file, default=None, metavar="PATH", help="write the report as JSON here")
+    p.set_defaults(func=_run_report)
+
+
+def _run_report(args: argparse.Namespace) -> int:
+    from groundstation.mcap_log import LogError
+    from groundstation.replay import format_report, plot_log, report
+    from runtime.cliutil import write_json_atomic
+    rows = _read_log(args.log)
+    try:
+        res = report(rows)
+        if args.plot:
+            plot_log(str(args.plot), rows)
+    except LogError as exc:
+        raise UsageError(f"LOG {args.log}: {exc}") from None
+    print(format_report(res))
+    if args.json:
+        write_json_atomic(args.json, res)
+    for path in (args.plot, args.json):
+        if path:
+            print(f"wrote {path}")
+    return 0
+
+
+SUBCOMMANDS = (_add_sim, _add_demo, _add_fly, _add_land, _add_status, _add_replay, _add_report)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.liveview.server import ControlRefused
-from groundstation.mcap_log import LogError, read_log
+from groundstation.mcap_log import LogError
 
 MAX_EVENTS = 100
 """Events the page gets per state (the latest ones)."""
@@ -35,6 +35,27 @@ def _split(rows: list[dict]) -> tuple[dict | None, list[dict], list[dict], list[
     events = [r for r in rows if "event" in r and r["event"] not in ("scene", "metrics")]
     metrics = [r for r in rows if r.get("event") == "metrics"]
     return scene, state, events, metrics
+
+
+def _status_changes(events: list[dict]) -> dict[str, tuple[list[float], list[str]]]:
+    """Drone -> (times, statuses) of its status events: a status can change between two record periods (the
+    last rows of a flight are often written before the touchdown)."""
+    out: dict[str, tuple[list[float], list[str]]] = {}
+    for e in events:
+        if e["event"] == "status" and e.get("drone") and e.get("to"):
+            ts, ss = out.setdefault(e["drone"], ([], []))
+            ts.append(float(e["t"]))
+            ss.append(e["to"])
+    return out
+
+
+def _status_at(row: dict, changes: tuple[list[float], list[str]] | None, t: float) -> str:
+    """The drone's status at ``t``: its state row's, unless a status event came after that row."""
+    if changes is not None:
+        k = bisect.bisect_right(changes[0], t) - 1
+        if k >= 0 and changes[0][k] > float(row["t"]):
+            return changes[1][k]
+    return row.get("state")
 
 
 class ReplaySource:
@@ -55,8 +76,12 @@ class ReplaySource:
         self._event_t = [float(r["t"]) for r in self._events]
         self._metrics = sorted(metrics, key=lambda r: float(r["t"]))
         self._metric_t = [float(r["t"]) for r in self._metrics]
+        self._changes = _status_changes(self._events)
         self.t_begin = min(min(ts) for ts in self._times.values())
-        self.duration = max(max(ts) for ts in self._times.values()) - self.t_begin
+        t_end = max(max(ts) for ts in self._times.values())
+        if self._event_t:  # the landings after the last record period
+            t_end = max(t_end, self._event_t[-1])
+        self.duration = t_end - self.t_begin
         self.speed = float(speed)
         self.paused = False
         self._lock = threading.Lock()
@@ -102,11 +127,10 @@ class ReplaySource:
         return {"ok": True, "control": name, "replay": self._clock()}
 
     def _clock(self) -> dict[str, Any]:
-        return {"t": round(self._base if self.paused else self.position_unlocked(), 3),
-                "duration": round(self.duration, 3), "paused": self.paused, "speed": self.speed}
-
-    def position_unlocked(self) -> float:
-        return min(self._base + (time.monotonic() - self._wall) * self.speed, self.duration)
+        """The clock for the page's replay bar (call with the lock held)."""
+        t = self._base if self.paused else min(self._base + (time.monotonic() - self._wall) * self.speed,
+                                               self.duration)
+        return {"t": round(t, 3), "duration": round(self.duration, 3), "paused": self.paused, "speed": self.speed}
 
     # -- the state --------------------------------------------------------------------------------
 
@@ -120,7 +144,7 @@ class ReplaySource:
                 continue
             r = self._rows[d][k]
             drones.append({"id": d, "team": r.get("team"), "role": r.get("role"), "actor": r.get("actor"),
-                           "status": r.get("state"), "reason": "", "position": r.get("position"),
+                           "status": _status_at(r, self._changes.get(d), t), "reason": "", "position": r.get("position"),
                            "battery": r.get("battery"), "link_quality": r.get("link_quality"),
                            "position_variance": r.get("position_variance"), "setpoint": r.get("setpoint"),
                            "setpoint_age": r.get("setpoint_age"), "command_age": r.get("command_age"),
@@ -138,7 +162,7 @@ class ReplaySource:
             if m >= 0 else {}
         with self._lock:
             clock = self._clock()
-        return {"mode": "replay", "t": round(t, 3), "mission": mission, "drones": drones, "events": events,
+        return {"mode": "replay", "t": round(t, 4), "mission": mission, "drones": drones, "events": events,
                 "n_events": n, "scene": self.scene, "metrics": metrics, "controls": list(self.controls),
                 "replay": clock}
 
@@ -159,6 +183,15 @@ def _spec_from_log(state: list[dict], scene: dict | None):
     if scene is not None and scene.get("arena"):
         data["arena"] = {"half_width": scene["arena"]["half_width"]}
     return SwarmSpec.from_dict(data)
+
+
+def _final_states(state: list[dict], events: list[dict]) -> dict[str, str]:
+    changes = _status_changes(events)
+    out = {}
+    for d in dict.fromkeys(r["drone"] for r in state):
+        last = next(r for r in reversed(state) if r["drone"] == d)
+        out[d] = _status_at(last, changes.get(d), math.inf)
+    return out
 
 
 def report(rows: list[dict]) -> dict[str, Any]:
@@ -193,7 +226,7 @@ def report(rows: list[dict]) -> dict[str, Any]:
                                     "evaders": spec.team.n_evaders}, "steps": steps}
     out.update(em.summary() if steps else {"episodes": 0})
     ids = list(dict.fromkeys(r["drone"] for r in state))
-    final = {d: next(r["state"] for r in reversed(state) if r["drone"] == d) for d in ids}
+    final = _final_states(state, events)
     out.update({
         "drones": len(ids), "final_state": final, "landed": sum(1 for s in final.values() if s == "landed"),
         "duration_s": round(max(by_t) - min(by_t), 2),
@@ -240,11 +273,8 @@ def plot_log(path: str, rows: list[dict]) -> None:
                                              for a in scene["anchors"]), expected_count=len(scene["anchors"]))
     ids = list(dict.fromkeys(r["drone"] for r in state))
     res = report(rows) if any(r.get("actor") for r in state) else {"drones": len(ids)}
-    final = {d: next(r["state"] for r in reversed(state) if r["drone"] == d) for d in ids}
+    final = _final_states(state, _split(rows)[2])
     title = {"drones": len(ids), "mission_s": res.get("duration_s"),
              "landed": sum(1 for s in final.values() if s == "landed"), "geofence_violations": "-"}
     plot_flight(path, rows, fence, anchors, ids, {}, title)
 
-
-def load(path: str) -> list[dict]:
-    return read_log(path)

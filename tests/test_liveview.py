@@ -277,3 +277,55 @@ def test_fly_view_lands_a_fleet_and_a_taken_port_is_refused(tmp_path, capsys):
         out = capsys.readouterr().out
         assert f"live view: http://127.0.0.1:{port}/" in out and "'cf2': 'landed'" in out
         assert all(not sims.truth(i).motors_on for i in range(n))
+
+
+def test_replay_and_report_of_the_demo_log(demo_flight, tmp_path, capsys):
+    """The demo's MCAP log (written by the first test's flight) played into a view and reported."""
+    from groundstation import cli
+    from groundstation.mcap_log import read_log
+    from groundstation.replay import ReplaySource, report
+    view, box = demo_flight
+    box["thread"].join(timeout=60)
+    assert box["log"].is_file(), "the demo flight did not run"
+    rows = read_log(box["log"])
+    res = report(rows)
+    assert res["drones"] == 5 and res["landed"] == 5 and res["steps"] > 5 and res["episodes"] == 1
+    assert 0 < res["mean_min_dist"] <= res["mean_avg_dist"] <= res["mean_max_dist"]
+    assert 0 <= res["tracking_rate"] <= 1 and 0 < res["coverage"] <= 1
+    assert cli.main(["report", str(box["log"]), "--plot", str(tmp_path / "r.png"), "--json",
+                     str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    assert "distance to targets" in out and "landed 5/5" in out
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((tmp_path / "r.json").read_text())["steps"] == res["steps"]
+
+    source = ReplaySource(rows, speed=1.0)
+    with LiveView(port=0) as replay:
+        replay.attach(source)
+        assert wait_until(lambda: len(get_state(replay)["drones"]) == 5, timeout=5, period=0.05)
+        s = get_state(replay)
+        assert s["mode"] == "replay" and s["controls"] == ["replay"] and s["scene"]["fence"]
+        assert s["replay"]["duration"] > 1.0
+        code, out = post(replay, "/api/replay", {"pause": True, "seek": 1.0})
+        assert code == 200 and out["replay"]["paused"] and out["replay"]["t"] == 1.0
+        assert wait_until(lambda: get_state(replay)["replay"]["t"] == 1.0, timeout=5, period=0.05)
+        t1 = get_state(replay)["t"]
+        assert abs(t1 - (source.t_begin + 1.0)) < 1e-6
+        assert get_state(replay)["t"] == t1  # paused
+        # the drones where the log has them at that time
+        for d in get_state(replay)["drones"]:
+            logged = [r for r in rows if r.get("drone") == d["id"] and "event" not in r and r["t"] <= t1][-1]
+            assert d["position"] == logged["position"] and d["status"] == logged["state"]
+        code, out = post(replay, "/api/replay", {"seek": 1e9, "pause": False, "speed": 8})
+        assert code == 200
+        assert wait_until(lambda: source.finished, timeout=5, period=0.05)
+        assert wait_until(lambda: [d["status"] for d in get_state(replay)["drones"]] == ["landed"] * 5, timeout=5,
+                          period=0.05)
+        code, _ = post(replay, "/api/replay", {"speed": -1})
+        assert code == 400
+        code, _ = post(replay, "/api/land_all")
+        assert code == 409  # a replay commands no drone
+    # swarm-gs replay --once: plays to the end and exits
+    port = _free_port()
+    assert cli.main(["replay", str(box["log"]), "--view", str(port), "--speed", "50", "--once"]) == 0
+    assert f"live view: http://127.0.0.1:{port}/" in capsys.readouterr().out
