@@ -132,3 +132,23 @@ def test_unreadable_logs_name_the_file(tmp_path):
     junk.write_text("hello\n")
     with pytest.raises(LogError, match="junk.jsonl:1"):
         read_log(junk)
+
+
+def test_replay_and_report_take_either_format(logs, capsys):
+    from groundstation import cli
+    from groundstation.replay import ReplaySource
+    mcap_path, jsonl_path, ids = logs
+    for path in (mcap_path, jsonl_path):
+        source = ReplaySource(read_log(path))
+        source.control("replay", {"pause": True, "seek": 1e9})
+        s = source.state()
+        assert [d["id"] for d in s["drones"]] == ids and {d["status"] for d in s["drones"]} == {"landed"}
+        assert s["scene"]["fence"] and s["metrics"]["mean_avg_dist"] == 1.5
+        assert any(e["kind"] == "preflight_ok" for e in s["events"]) and not s["mission"]
+    # a hover flight flies no actors: the paper's metrics cannot be computed, in one line naming LOG
+    assert cli.main(["report", str(jsonl_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("swarm-gs report: error: LOG") and "evader" in err and err.count("\n") == 1
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["replay", str(jsonl_path.with_name("nothing.jsonl"))])
+    assert exit_.value.code == 2 and "nothing.jsonl" in capsys.readouterr().err
