@@ -257,7 +257,10 @@ class LiveView:
             log.exception("live view stopped")
         finally:
             self._ready.set()
-            loop.close()
+            try:  # the controls' worker threads (run_in_executor) end with the loop
+                loop.run_until_complete(loop.shutdown_default_executor())
+            finally:
+                loop.close()
 
     async def _serve(self) -> None:
         from aiohttp import web
