@@ -12,32 +12,20 @@ velocity, when it was seen). The bytes travel over a ``Transport`` (``InProcessB
   ``(seed, receiver)``, so a run is reproducible given the same sequence of messages);
 - latency (receiver side): a message is delivered ``latency_s`` (+ uniform ``jitter_s``) after it left
   the sender, on the shared swarm clock;
-- malformed messages (bad magic, version, sender, role, length, non-finite numbers) and oversized ones
-  (more than ``max_bytes``) are dropped and counted.
+- malformed messages (bad magic, sender, role, length, non-finite numbers), messages of another message version
+  or spec (counted apart, and logged once per sender with the reason) and oversized ones are dropped.
 
-Wire format (little endian), ``HEADER`` then ``n_sightings`` times ``SIGHTING``:
+Wire format: ``runtime.radio_msg`` (the one definition the Crazyflie app's C is generated from): one 60-byte
+peer-to-peer packet at most, positions and velocities in int16 fixed point (1 mm, 1 mm/s with the default
+spec), times in whole ms, up to three relayed sightings (freshest first, younger than the target memory).
+Airtime (``bandwidth_bps``) and ``max_bytes`` count the packet's bytes.
 
-=========  =====  ===========================================================================
-field      type   meaning
-=========  =====  ===========================================================================
-magic      2s     ``b"SP"``
-version    u8     ``WIRE_VERSION``
-sender     u8     agent index in spec order
-role       u8     ``runtime.spec.Role`` of the sender (checked against the spec)
-n_sight    u8     sightings that follow (at most the number of evaders)
-epoch      u16    episode / mission counter; messages of another epoch are ignored
-seq        u32    sender's message counter
-t_tx       f64    swarm-clock time the message finished leaving the sender [s]
-t_state    f64    timestamp of the position and velocity [s]
-x y vx vy  4 f64  sender's position [m] and velocity [m/s], world frame
---------   -----  per sighting:
-target     u8     evader number (0 = first evader)
-x y vx vy  4 f64  its position [m] and velocity [m/s] when seen
-t_seen     f64    when it was seen [s]
-=========  =====  ===========================================================================
-
-Numbers travel as float64 so that a drone's belief of a neighbour is bit-identical to the neighbour's own
-state (the observation a drone builds equals the training encoder's on the same state): 142 B for 2 evaders.
+Exact values (``CommConfig.exact_values``, on by default): the simulated channel then carries, after the
+packet, the sender's float64 numbers (``_EXACT``: t_tx, t_state, x, y, vx, vy, then x, y, vx, vy, t_seen per
+sighting) and the receiver uses them instead of the packet's quantized ones, so that a simulated drone's
+observation is bit-identical to the training encoder's on the same state. The packet itself (its layout,
+checks, sighting budget and size) is the same either way; with ``exact_values=False`` a drone receives
+exactly what a Crazyflie peer would (the quantization error stays within ``radio_msg.Scales``).
 """
 from __future__ import annotations
 
@@ -48,22 +36,29 @@ import socket
 import struct
 from dataclasses import dataclass
 
+import logging
+
 import numpy as np
 
-from runtime.observation import SIGHTING
+from runtime import radio_msg
+from runtime.radio_msg import HEADER, MAX_SIGHTINGS, SIGHTING, Codec, RadioMsgError, message_size
 from runtime.spec import SpecError, SwarmSpec
 
-MAGIC = b"SP"
-WIRE_VERSION = 1
-HEADER = struct.Struct("<2sBBBBHIdd4d")
-SIGHT = struct.Struct("<B4dd")
-MAX_BYTES = 256
-"""Default largest accepted message [bytes]: a header (60 B) and up to 4 sightings (41 B each)."""
+log = logging.getLogger(__name__)
+
+SIGHT = SIGHTING
+WIRE_VERSION = radio_msg.VERSION
+MAX_BYTES = radio_msg.P2P_MAX_DATA_SIZE
+"""Default and largest accepted packet [bytes]: one Crazyflie peer-to-peer packet."""
 _RECV_BUF = 2048
 
 
-def message_size(n_sightings: int) -> int:
-    return HEADER.size + n_sightings * SIGHT.size
+def _exact(n_sightings: int) -> struct.Struct:
+    """The simulation's float64 trailer after a packet with ``n_sightings`` sightings (see the module doc)."""
+    return struct.Struct("<" + "d" * (6 + 5 * n_sightings))
+
+
+_EXACT = [_exact(n) for n in range(MAX_SIGHTINGS + 1)]
 
 
 @dataclass(frozen=True)
@@ -84,7 +79,11 @@ class CommConfig:
     """Radio range [m]; None: the spec's ``sensing.comm_range`` with partial observability, unlimited with
     full observability (the spec: ranges then do not limit what is seen)."""
     max_bytes: int = MAX_BYTES
-    """Largest accepted message [bytes]; longer ones are dropped as oversized."""
+    """Largest packet [bytes] (at most the 60 of a Crazyflie peer-to-peer packet); a smaller budget relays
+    fewer sightings, longer packets are dropped as oversized."""
+    exact_values: bool = True
+    """Carry the sender's float64 numbers beside the packet (see the module doc); False: the receiver gets
+    the packet's quantized values, as on the drones."""
     queue: int = 512
     """Messages a receiver can hold while they are in flight (latency); more are dropped."""
     seed: int = 0
@@ -100,8 +99,9 @@ class CommConfig:
             raise SpecError(f"comms.bandwidth_bps: must be > 0 (inf for no limit), got {self.bandwidth_bps!r}")
         if self.comm_range is not None and not self.comm_range > 0:
             raise SpecError(f"comms.comm_range: must be > 0 (or None for the spec's), got {self.comm_range!r}")
-        if self.max_bytes < HEADER.size:
-            raise SpecError(f"comms.max_bytes: at least {HEADER.size} (one header), got {self.max_bytes}")
+        if not HEADER.size <= self.max_bytes <= MAX_BYTES:
+            raise SpecError(f"comms.max_bytes: between {HEADER.size} (one header) and {MAX_BYTES} (a Crazyflie "
+                            f"peer-to-peer packet), got {self.max_bytes}")
         if self.queue < 1:
             raise SpecError(f"comms.queue: must be >= 1, got {self.queue}")
 
@@ -124,6 +124,12 @@ class CommStats:
     dropped_bandwidth: int = 0
     dropped_queue: int = 0
     dropped_epoch: int = 0
+    dropped_version: int = 0
+    """Messages of another message layout version (``runtime.radio_msg.VERSION``)."""
+    dropped_spec: int = 0
+    """Messages of a drone flying another spec (its hash prefix differs)."""
+    sightings_left_out: int = 0
+    """Sightings not relayed because the packet had no room for them (sender side)."""
     ignored_other_team: int = 0
     """Messages of the other team (the pursuer team and the evaders do not share a channel)."""
 
@@ -274,9 +280,9 @@ class Radio:
         self.index = index
         self.transport = transport
         self.config = config or CommConfig()
+        self.codec = Codec(spec)
         self.n = spec.n_agents
         self.n_evaders = spec.team.n_evaders
-        self.roles = bytes(int(r) for r in spec.roles)
         self.range = self.config.range_for(spec)
         self.range2 = self.range * self.range
         nt = spec.team.n_team
@@ -286,70 +292,106 @@ class Radio:
         self.epoch = 0
         self.seq = 0
         self.busy_until = -math.inf
-        e = self.n_evaders
-        if message_size(e) > self.config.max_bytes:
-            raise SpecError(f"comms.max_bytes: {self.config.max_bytes} B cannot hold a message with {e} sightings "
-                            f"({message_size(e)} B): raise comms.max_bytes")
-        self._out = bytearray(message_size(e))
+        self.n_relay = min(self.n_evaders, MAX_SIGHTINGS, (self.config.max_bytes - HEADER.size) // SIGHTING.size)
+        """Sightings one packet carries at most (the packet's room within ``max_bytes``)."""
+        n_max = min(self.n_evaders, MAX_SIGHTINGS)
+        self._max_in = MAX_BYTES + _EXACT[n_max].size
+        self._out = bytearray(MAX_BYTES + _EXACT[n_max].size)
+        self._warned: set[tuple[str, int]] = set()
         self._pending: list[tuple] = []
         """Messages in flight (latency): (due, sender, t_state, x, y, vx, vy, sightings), oldest first."""
 
     # ----------------------------------------------------------------------------------------- send
     def broadcast(self, now: float, t_state: float, pos: np.ndarray, vel: np.ndarray,
                   sightings: np.ndarray | None = None) -> bool:
-        """Send own state and the known sightings ``[n_evaders, 5]`` (rows with a finite ``t_seen``).
-        Returns False when the sender's channel backlog dropped it."""
+        """Send own state and the known sightings ``[n_evaders, 5]`` (rows with a finite ``t_seen`` younger
+        than the target memory, freshest first, as many as the packet holds). Returns False when the sender's
+        channel backlog dropped it."""
         cfg = self.config
-        n_s = 0
-        off = HEADER.size
+        rows: list = []
         if sightings is not None:
-            for e in range(sightings.shape[0]):
-                row = sightings[e]
-                if math.isfinite(row[4]):
-                    SIGHT.pack_into(self._out, off, e, row[0], row[1], row[2], row[3], row[4])
-                    off += SIGHT.size
-                    n_s += 1
+            sel = self.codec.select(sightings, t_state, limit=self.n_evaders)
+            if len(sel) > self.n_relay:
+                self.stats.sightings_left_out += len(sel) - self.n_relay
+            rows = [(e, *(float(v) for v in sightings[e][:5])) for e in sel[:self.n_relay]]
+        size = message_size(len(rows))
         t_tx = now
         if cfg.bandwidth_bps != math.inf:
             start = max(now, self.busy_until)
             if start - now > cfg.max_backlog_s:
                 self.stats.dropped_bandwidth += 1
                 return False
-            t_tx = start + 8.0 * off / cfg.bandwidth_bps
+            t_tx = start + 8.0 * size / cfg.bandwidth_bps
             self.busy_until = t_tx
-        HEADER.pack_into(self._out, 0, MAGIC, WIRE_VERSION, self.index, self.roles[self.index], n_s,
-                         self.epoch & 0xFFFF, self.seq & 0xFFFFFFFF, t_tx, t_state,
-                         pos[0], pos[1], vel[0], vel[1])
+        x, y, vx, vy = float(pos[0]), float(pos[1]), float(vel[0]), float(vel[1])
+        self.codec.pack_into(self._out, self.index, self.epoch, self.seq, t_tx, t_state, x, y, vx, vy, rows)
+        if cfg.exact_values:
+            vals = [t_tx, t_state, x, y, vx, vy]
+            for r in rows:
+                vals += r[1:]
+            _EXACT[len(rows)].pack_into(self._out, size, *vals)
+            size += _EXACT[len(rows)].size
         self.seq += 1
-        self.transport.send(memoryview(self._out)[:off])
+        self.transport.send(memoryview(self._out)[:size])
         self.stats.sent += 1
         return True
 
     # -------------------------------------------------------------------------------------- receive
+    def _reject(self, exc: RadioMsgError) -> None:
+        st = self.stats
+        if exc.reason in ("spec", "version"):
+            setattr(st, f"dropped_{exc.reason}", getattr(st, f"dropped_{exc.reason}") + 1)
+            key = (exc.reason, 0)
+            if key not in self._warned:  # once per reason: a neighbour of another spec talks at 10 Hz
+                self._warned.add(key)
+                log.warning("agent %d ignores a neighbour: %s", self.index, exc)
+        else:
+            st.dropped_malformed += 1
+
     def _decode(self, data: bytes | memoryview, now: float, mx: float, my: float, table: Neighbours,
                 sightings: np.ndarray | None) -> int:
         st = self.stats
         st.received += 1
         size = len(data)
-        if size > self.config.max_bytes:
+        if size > self._max_in:
             st.dropped_oversized += 1
             return 0
-        if size < HEADER.size:
-            st.dropped_malformed += 1
+        try:
+            h = self.codec.check_header(data)
+        except RadioMsgError as exc:
+            self._reject(exc)
             return 0
-        (magic, version, sender, role, n_s, epoch, _seq, t_tx, t_state,
-         x, y, vx, vy) = HEADER.unpack_from(data, 0)
-        if (magic != MAGIC or version != WIRE_VERSION or sender >= self.n or sender == self.index
-                or role != self.roles[sender] or n_s > self.n_evaders or size != message_size(n_s)
-                or not math.isfinite(t_tx + t_state + x + y + vx + vy)):
+        sender, n_s = h[3], h[5]
+        packet = message_size(n_s)
+        exact = size == packet + _EXACT[n_s].size
+        if packet > self.config.max_bytes:
+            st.dropped_oversized += 1
+            return 0
+        if sender == self.index or not (exact or size == packet):
             st.dropped_malformed += 1
             return 0
         if not self.same_team[sender]:
             st.ignored_other_team += 1
             return 0
-        if epoch != (self.epoch & 0xFFFF):
+        if h[7] != (self.epoch & 0xFFFF):
             st.dropped_epoch += 1
             return 0
+        try:
+            t_state, sights = self.codec.values(data, h, now)
+        except RadioMsgError:
+            st.dropped_malformed += 1
+            return 0
+        if exact:
+            v = _EXACT[n_s].unpack_from(data, packet)
+            if not all(math.isfinite(u) for u in v):
+                st.dropped_malformed += 1
+                return 0
+            t_tx, t_state, x, y, vx, vy = v[:6]
+            sights = tuple((sg[0], *v[6 + 5 * j:11 + 5 * j]) for j, sg in enumerate(sights))
+        else:
+            pm, vm = self.codec._pos_m / 1000.0, self.codec._vel_m / 1000.0
+            t_tx = radio_msg.unwrap_ms(h[9], now)
+            x, y, vx, vy = h[11] * pm, h[12] * pm, h[13] * vm, h[14] * vm
         dx = x - mx
         dy = y - my
         if dx * dx + dy * dy > self.range2:
@@ -359,13 +401,6 @@ class Radio:
         if loss > 0.0 and self.rng.random() < loss:
             st.dropped_loss += 1
             return 0
-        sights = ()
-        if n_s:
-            sights = tuple(SIGHT.unpack_from(data, HEADER.size + j * SIGHT.size) for j in range(n_s))
-            for sg in sights:
-                if sg[0] >= self.n_evaders or not math.isfinite(sg[1] + sg[2] + sg[3] + sg[4] + sg[5]):
-                    st.dropped_malformed += 1
-                    return 0
         due = t_tx + self.config.latency_s
         if self.config.jitter_s > 0.0:
             due += self.rng.random() * self.config.jitter_s
@@ -436,19 +471,25 @@ def _due(message: tuple) -> float:
     return message[0]
 
 
-def decode_message(data: bytes) -> dict:
-    """A message as a dict (for tests and debugging); raises ValueError when malformed."""
-    if len(data) < HEADER.size:
-        raise ValueError(f"message of {len(data)} B is shorter than the {HEADER.size} B header")
-    (magic, version, sender, role, n_s, epoch, seq, t_tx, t_state, x, y, vx, vy) = HEADER.unpack_from(data, 0)
-    if magic != MAGIC or version != WIRE_VERSION:
-        raise ValueError(f"bad magic/version {magic!r}/{version}")
-    if len(data) != message_size(n_s):
-        raise ValueError(f"{len(data)} B for {n_s} sightings, expected {message_size(n_s)} B")
-    sights = [SIGHT.unpack_from(data, HEADER.size + j * SIGHT.size) for j in range(n_s)]
-    return {"sender": sender, "role": role, "epoch": epoch, "seq": seq, "t_tx": t_tx, "t_state": t_state,
-            "pos": (x, y), "vel": (vx, vy),
-            "sightings": [{"target": s[0], "pos": s[1:3], "vel": s[3:5], "t_seen": s[5]} for s in sights]}
+def decode_message(data: bytes, spec: SwarmSpec, now: float = 0.0) -> dict:
+    """A message of ``spec`` as a dict (for tests and debugging), with the exact values when the simulation's
+    trailer is there; raises ``radio_msg.RadioMsgError`` (a ValueError) naming the reason when it is unusable."""
+    codec = Codec(spec)
+    h = codec.check_header(data)
+    packet = message_size(h[5])
+    m = codec.unpack(bytes(data[:packet]), now)
+    exact = len(data) == packet + _EXACT[h[5]].size
+    t_tx, t_state, pos, vel = m.t_tx, m.t_state, (m.x, m.y), (m.vx, m.vy)
+    sights = m.sightings
+    if exact:
+        v = _EXACT[h[5]].unpack_from(data, packet)
+        t_tx, t_state, pos, vel = v[0], v[1], v[2:4], v[4:6]
+        sights = tuple((sg[0], *v[6 + 5 * j:11 + 5 * j]) for j, sg in enumerate(sights))
+    elif len(data) != packet:
+        raise RadioMsgError("size", f"{len(data)} B for {h[5]} sightings, expected {packet} B")
+    return {"sender": m.sender, "role": m.role, "epoch": m.epoch, "seq": m.seq, "t_tx": t_tx, "t_state": t_state,
+            "pos": tuple(pos), "vel": tuple(vel), "clamped": m.clamped, "exact": exact,
+            "sightings": [{"target": s[0], "pos": tuple(s[1:3]), "vel": tuple(s[3:5]), "t_seen": s[5]} for s in sights]}
 
 
 __all__ = ["CommConfig", "CommStats", "Transport", "InProcessBus", "UdpTransport", "Radio", "Neighbours",

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from runtime import radio_msg
 from runtime.comms import (HEADER, SIGHT, CommConfig, InProcessBus, Neighbours, Radio, UdpTransport, decode_message,
                            free_udp_ports, message_size)
 from runtime.observation import SIGHTING
@@ -34,8 +35,10 @@ def test_wire_roundtrip_carries_id_role_state_and_timestamped_sightings():
     bus, tx, rx = pair()
     tx.broadcast(2.0, 1.9, np.array([1.0, -2.0]), np.array([0.3, 0.4]), sightings(1.5))
     raw = bus.queues[1][0]
-    assert len(raw) == message_size(1) == HEADER.size + SIGHT.size
-    msg = decode_message(raw)
+    assert message_size(1) == HEADER.size + SIGHT.size <= radio_msg.P2P_MAX_DATA_SIZE
+    assert len(raw) > message_size(1)  # the packet, then the simulation's exact values (CommConfig.exact_values)
+    msg = decode_message(raw, SPEC)
+    assert msg["exact"] and not msg["clamped"]
     assert msg["sender"] == 0 and msg["role"] == int(SPEC.roles[0])
     assert msg["pos"] == (1.0, -2.0) and msg["vel"] == (0.3, 0.4) and msg["t_state"] == 1.9
     assert msg["sightings"] == [{"target": 1, "pos": (0.5, -0.25), "vel": (0.1, 0.2), "t_seen": 1.5}]
@@ -60,14 +63,23 @@ def test_fresher_sighting_wins_and_older_state_does_not_overwrite():
     np.testing.assert_array_equal(table.pos[0], [1.0, 1.0])
 
 
+def _header(**kw) -> bytes:
+    """A state-only packet of SPEC's sender 0 with ``kw`` replacing header fields (radio_msg.HEADER_FIELDS)."""
+    h = dict(zip([f.name for f in radio_msg.HEADER_FIELDS],
+                 HEADER.unpack(radio_msg.Codec(SPEC).pack(0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0))))
+    h.update(kw)
+    return HEADER.pack(*h.values())
+
+
 @pytest.mark.parametrize("blob, what", [
     (b"", "malformed"), (b"XX" + bytes(HEADER.size - 2), "malformed"),
-    (HEADER.pack(b"SP", 9, 0, 0, 0, 0, 0, 0.0, 0.0, 0, 0, 0, 0), "malformed"),  # wrong version
-    (HEADER.pack(b"SP", 1, 200, 0, 0, 0, 0, 0.0, 0.0, 0, 0, 0, 0), "malformed"),  # no such sender
-    (HEADER.pack(b"SP", 1, 0, 2, 0, 0, 0, 0.0, 0.0, 0, 0, 0, 0), "malformed"),  # sender 0 is no evader
-    (HEADER.pack(b"SP", 1, 0, 0, 1, 0, 0, 0.0, 0.0, 0, 0, 0, 0), "malformed"),  # announces a missing sighting
-    (HEADER.pack(b"SP", 1, 0, 0, 0, 0, 0, 0.0, 0.0, math.nan, 0, 0, 0), "malformed"),  # NaN position
-    (HEADER.pack(b"SP", 1, 0, 0, 1, 0, 0, 0.0, 0.0, 0, 0, 0, 0) + SIGHT.pack(7, 0, 0, 0, 0, 0.0), "malformed"),
+    (_header(version=9), "version"),
+    (_header(spec_hash=radio_msg.spec_hash32(SPEC) ^ 1), "spec"),
+    (_header(sender=200), "malformed"),  # no such sender
+    (_header(role=2), "malformed"),  # sender 0 is no evader
+    (_header(n_sight=1), "malformed"),  # announces a missing sighting
+    (_header(x=radio_msg.NAN_RAW), "malformed"),  # NaN position
+    (_header(n_sight=1) + SIGHT.pack(7, 0, 0, 0, 0, 0), "malformed"),  # no such evader
     (bytes(300), "oversized"),
 ])
 def test_malformed_and_oversized_messages_are_dropped_and_counted(blob, what):
@@ -76,6 +88,7 @@ def test_malformed_and_oversized_messages_are_dropped_and_counted(blob, what):
     table = Neighbours(SPEC.n_agents)
     assert rx.poll(0.0, np.zeros(2), table) == 0
     assert getattr(rx.stats, f"dropped_{what}") == 1 and rx.stats.received == 1
+    assert sum(v for k, v in rx.stats.as_dict().items() if k.startswith("dropped_")) == 1
     assert not np.isfinite(table.t_state).any()
 
 
@@ -151,7 +164,32 @@ def test_bad_comm_config_names_the_field():
         with pytest.raises(SpecError, match=field):
             CommConfig(**kw)
     with pytest.raises(SpecError, match="max_bytes"):
-        Radio(SPEC, 0, InProcessBus(SPEC.n_agents).endpoint(0), CommConfig(max_bytes=100))
+        CommConfig(max_bytes=100)  # more than a Crazyflie peer-to-peer packet
+
+
+def test_a_small_byte_budget_relays_the_freshest_sightings_that_fit():
+    bus, tx, rx = pair(CommConfig(max_bytes=HEADER.size + SIGHT.size))
+    s = sightings(1.5)
+    s[0] = [0.1, 0.2, 0.0, 0.0, 1.0]  # older than evader 1's
+    tx.broadcast(2.0, 2.0, np.zeros(2), np.zeros(2), s)
+    msg = decode_message(bus.queues[1][0], SPEC)
+    assert [g["target"] for g in msg["sightings"]] == [1] and tx.stats.sightings_left_out == 1
+    s[0, 4] = 2.0 - SPEC.sensing.target_memory  # as old as the memory: unknown, not relayed
+    tx.broadcast(2.1, 2.0, np.zeros(2), np.zeros(2), s)
+    assert len(decode_message(bus.queues[1][1], SPEC)["sightings"]) == 1 and tx.stats.sightings_left_out == 1
+
+
+def test_quantized_channel_delivers_the_packet_values():
+    bus, tx, rx = pair(CommConfig(exact_values=False))
+    tx.broadcast(2.0, 1.9, np.array([1.0004, -2.0]), np.array([0.3, 0.4]), sightings(1.5))
+    assert len(bus.queues[1][0]) == message_size(1)
+    table, kn = Neighbours(SPEC.n_agents), sightings(-np.inf)
+    kn[1, 4] = -np.inf
+    assert rx.poll(2.0, np.zeros(2), table, kn) == 1
+    np.testing.assert_array_equal(table.pos[0], [1.0, -2.0])  # 1 mm steps
+    assert table.t_state[0] == 1.9
+    lsb = radio_msg.Scales.for_spec(SPEC).age_lsb
+    assert abs(kn[1, 4] - 1.5) <= lsb / 2 + 1e-3 and kn[1, 0] == 0.5
 
 
 def test_udp_loopback_transport_carries_the_same_messages():
