@@ -177,6 +177,7 @@ function updateHeader() {
   const c = state.controls || [];
   document.getElementById("land-all").disabled = !c.includes("land_all");
   document.getElementById("estop").disabled = !c.includes("emergency_stop");
+  document.getElementById("controls").hidden = state.mode === "replay";  // a replay commands no drone
   const replay = document.getElementById("replay");
   replay.hidden = state.mode !== "replay";
   if (state.mode === "replay" && state.replay) {
