@@ -103,3 +103,49 @@ def test_page_draws_the_swarm_updates_and_lands_it(browser, tmp_path):
                 post(view, "/api/land_all")
                 thread.join(timeout=60)
     assert SCREENSHOT.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_replay_bar_pauses_and_seeks(browser):
+    """A made-up 10 s log of 3 drones circling, played into the page: its replay bar pauses and seeks, and the
+    page shows no flight controls."""
+    import math
+
+    from selenium.webdriver.common.by import By
+
+    from groundstation.liveview import scene
+    from groundstation.positioning import AnchorLayout
+    from groundstation.replay import ReplaySource
+    from groundstation.safety import FenceConfig
+    from runtime.spec import SwarmSpec
+    rows = [{"t": 0.0, "event": "scene", "drone": None, "detail": "",
+             "scene": scene(FenceConfig(), AnchorLayout(), SwarmSpec())}]
+    roles = ("pursuer", "scout", "evader")
+    for k in range(101):
+        t = round(k * 0.1, 4)
+        for i, role in enumerate(roles):
+            a = 0.3 * t + 2 * math.pi * i / 3
+            rows.append({"t": t, "drone": f"cf{i}", "role": role, "actor": f"{role}_0",
+                         "state": "flying" if k < 100 else "landed", "position": [math.cos(a), math.sin(a), 0.6],
+                         "setpoint": [0.0, 0.0, 0.0], "battery": 3.9, "link_quality": 1.0, "telemetry_age": 0.01})
+    source = ReplaySource(rows, speed=1.0)
+    with LiveView(port=0) as view:
+        view.attach(source)
+        browser.get(view.url)
+        canvas = browser.find_element(By.ID, "arena")
+        assert wait_until(lambda: canvas.get_attribute("data-drones") == "3", timeout=20, period=0.1)
+        assert browser.find_element(By.ID, "replay").is_displayed()
+        assert not browser.find_element(By.ID, "land-all").is_displayed()
+        browser.find_element(By.ID, "replay-pause").click()
+        assert wait_until(lambda: source.paused, timeout=5, period=0.05)
+        assert wait_until(lambda: browser.find_element(By.ID, "replay-pause").text == "Play", timeout=5, period=0.05)
+        browser.execute_script("const s = document.getElementById('replay-seek'); s.value = 7.5;"
+                               "s.dispatchEvent(new Event('change'));")
+        assert wait_until(lambda: browser.find_element(By.ID, "replay-time").text.startswith("7.5 /"), timeout=5,
+                          period=0.05)
+        cell = browser.find_element(By.CSS_SELECTOR, "#drones tbody tr[data-drone='cf0'] td:nth-child(10)").text
+        x, y = math.cos(0.3 * 7.5), math.sin(0.3 * 7.5)
+        assert cell == f"({x:.2f}, {y:.2f}, 0.60)"
+        browser.execute_script("const s = document.getElementById('replay-seek'); s.value = 10;"
+                               "s.dispatchEvent(new Event('change'));")
+        assert wait_until(lambda: [tr.get_attribute("data-status") for tr in browser.find_elements(
+            By.CSS_SELECTOR, "#drones tbody tr")] == ["landed"] * 3, timeout=5, period=0.05)
