@@ -36,8 +36,8 @@ Quantization, from the spec (``Scales``): positions cover twice the arena's half
 times the fastest role's ``max_speed`` with int16 (+-32767 steps); the step is 1 mm and 1 mm/s unless the
 arena or speeds need coarser ones (a 3 m arena: 1 mm, range +-32.767 m; max speed 1.3 m/s: 1 mm/s). The
 age step is ``target_memory`` / 254 rounded up to a whole ms (12 ms for 3 s). Rounding is to the nearest
-step, so the error is at most half a step. Out of range values saturate at +-32767 (age at 0 and 254) and
-set ``FLAG_CLAMPED``; a non-finite position or velocity is sent as ``NAN_RAW`` (-32768) and the receiver
+step (halves away from zero), so the error is at most half a step. Values beyond the last step saturate at +-32767 (ages at 0 and
+254; a non-finite age at 254) and set ``FLAG_CLAMPED``; a non-finite position or velocity is sent as ``NAN_RAW`` (-32768) and the receiver
 rejects the message (``"non-finite"``) or that sighting, never wraps. Times are whole ms modulo 2^32 and are
 read back as the value nearest to the receiver's clock (``unwrap_ms``): exact within +-24 days.
 
@@ -173,6 +173,11 @@ class Message:
     clamped: bool
 
 
+def _round(r: float) -> int:
+    """Nearest integer, halves away from zero (as the generated C: ``(int)(q + 0.5f)`` / ``(q - 0.5f)``)."""
+    return math.floor(r + 0.5) if r >= 0 else -math.floor(0.5 - r)
+
+
 def unwrap_ms(raw: int, ref_s: float) -> float:
     """The time [s] whose whole ms are ``raw`` modulo 2^32 nearest to ``ref_s``."""
     ref = round(ref_s * 1000.0)
@@ -199,11 +204,12 @@ class Codec:
 
     # ------------------------------------------------------------------------------------------- pack
     def select(self, sightings, t_state: float, limit: int = MAX_SIGHTINGS) -> list[int]:
-        """Rows of ``sightings`` ``[n_evaders, 5]`` to relay: younger than target_memory, freshest first."""
+        """Rows of ``sightings`` ``[n_evaders, 5]`` to relay: younger than target_memory, freshest first (ties:
+        lower evader first), at most ``limit``."""
         rows = [e for e in range(len(sightings))
                 if math.isfinite(sightings[e][4]) and t_state - sightings[e][4] < self.target_memory]
         rows.sort(key=lambda e: (-sightings[e][4], e))
-        return rows[:max(0, min(limit, MAX_SIGHTINGS))]
+        return rows[:max(0, limit)]
 
     def pack_into(self, buf, sender: int, epoch: int, seq: int, t_tx: float, t_state: float,
                   x: float, y: float, vx: float, vy: float, sightings=()) -> tuple[int, bool]:
@@ -217,18 +223,19 @@ class Codec:
         clamp = [False]
         off = HEADER.size
         for (e, sx, sy, svx, svy, ts) in sightings:
-            age = (t_state - ts) * self._age_k if math.isfinite(ts) else AGE_MAX
-            a = round(age) if age == age else AGE_MAX
-            if a < 0 or a > AGE_MAX:
-                a, clamp[0] = (0 if a < 0 else AGE_MAX), True
+            age = (t_state - ts) * self._age_k
+            if not math.isfinite(age) or age >= AGE_MAX + 0.5 or age <= -0.5:
+                a, clamp[0] = (0 if age <= -0.5 else AGE_MAX), True
+            else:
+                a = _round(age) if age > 0 else 0
             SIGHTING.pack_into(buf, off, int(e), a, self._q(sx, self._pos_k, clamp), self._q(sy, self._pos_k, clamp),
                                self._q(svx, self._vel_k, clamp), self._q(svy, self._vel_k, clamp))
             off += SIGHTING.size
+        state = (self._q(x, self._pos_k, clamp), self._q(y, self._pos_k, clamp),
+                 self._q(vx, self._vel_k, clamp), self._q(vy, self._vel_k, clamp))
         HEADER.pack_into(buf, 0, MAGIC, VERSION, self.hash32, sender, self.roles[sender], len(sightings),
                          FLAG_CLAMPED if clamp[0] else 0, epoch & 0xFFFF, seq & 0xFFFF,
-                         round(t_tx * 1000.0) % TIME_MOD, round(t_state * 1000.0) % TIME_MOD,
-                         self._q(x, self._pos_k, clamp), self._q(y, self._pos_k, clamp),
-                         self._q(vx, self._vel_k, clamp), self._q(vy, self._vel_k, clamp))
+                         round(t_tx * 1000.0) % TIME_MOD, round(t_state * 1000.0) % TIME_MOD, *state)
         return off, clamp[0]
 
     def pack(self, *args, **kw) -> bytes:
@@ -241,10 +248,10 @@ class Codec:
         if v != v:
             return NAN_RAW
         r = v * k
-        if r > I16_MAX or r < -I16_MAX:
+        if r >= I16_MAX + 0.5 or r <= -I16_MAX - 0.5:
             clamp[0] = True
             return I16_MAX if r > 0 else -I16_MAX
-        return round(r)
+        return _round(r)
 
     # ------------------------------------------------------------------------------------------ parse
     def check_header(self, data) -> tuple:

@@ -24,6 +24,7 @@ from firmware_export.mlp_graph import (ActorModel, Dense, ModelFileError, ModelM
                                        ModelShapeError, UnsupportedGraph)
 from firmware_export.toolchain import (APP_WARN_FLAGS, M4_FLAGS, HostPolicy, arm_gcc,  # noqa: E402
                                        build_host_library, compile_m4_object)
+from runtime import radio_msg  # noqa: E402
 from runtime.observation import encode_observations, new_knowledge, update_knowledge  # noqa: E402
 from runtime.spec import Role, SwarmSpec  # noqa: E402
 from runtime.world import World  # noqa: E402
@@ -684,9 +685,10 @@ def test_app_main_flies_the_policy_and_stops_on_the_deadman(work, spec, app_dirs
             ctypes.c_float.from_address(params[f"ob{k}{suffix}"]).value = val
     state = (ctypes.c_float * 4).in_dll(lib, "stub_state")
     heartbeat = ctypes.c_uint16.from_address(params["heartbeat"])
-    hash32 = int(spec.hash[:8], 16)
-    evader = struct.pack("<BBBBIffff", 0x53, 1, spec.team.n_team, 0, hash32, 1.2, -0.4, 0.3, 0.0)
-    foreign = struct.pack("<BBBBIffff", 0x53, 1, spec.team.n_team + 1, 0, hash32 ^ 1, 0.0, 0.0, 0.0, 0.0)
+    codec = radio_msg.Codec(spec)  # the message layout is runtime.radio_msg's; the app's is generated from it
+    evader = codec.pack(spec.team.n_team, 0, 0, 0.0, 0.0, 1.2, -0.4, 0.3, 0.0)
+    other_spec = SwarmSpec.from_dict({**spec.to_dict(), "sensing": {**spec.to_dict()["sensing"], "comm_range": 9.0}})
+    foreign = radio_msg.Codec(other_spec).pack(spec.team.n_team + 1, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     stop_beats_at = 2000
     acts = []
 
@@ -719,7 +721,9 @@ def test_app_main_flies_the_policy_and_stops_on_the_deadman(work, spec, app_dirs
     last = flying[-1]
     a = [x for x in acts if x != (0.0, 0.0)]
     assert any(np.allclose((last.vx, last.vy), x, atol=1e-6) for x in a)
-    out = ctypes.c_uint8 * 60
-    msg = bytes(out.from_address(ctypes.addressof(ctypes.c_uint8.in_dll(lib, "stub_last_broadcast")) + 3))[:24]
-    magic, ver, idx, _, h, x, y, vx, vy = struct.unpack("<BBBBIffff", msg)
-    assert (magic, ver, idx, h) == (0x53, 1, 0, hash32) and abs(vx - 0.1) < 1e-6
+    out = ctypes.c_uint8 * radio_msg.P2P_MAX_DATA_SIZE
+    last = ctypes.addressof(ctypes.c_uint8.in_dll(lib, "stub_last_broadcast"))
+    size = ctypes.c_uint8.from_address(last).value
+    msg = codec.unpack(bytes(out.from_address(last + 3))[:size], now=4.0)
+    assert msg.sender == 0 and msg.role == int(Role.PURSUER) and msg.seq == 39
+    assert abs(msg.vx - 0.1) <= radio_msg.Scales.for_spec(spec).vel_lsb / 2

@@ -28,6 +28,9 @@
 #include "policy.h"
 #include "swarm_logic.h"
 
+/* The generated message (runtime/radio_msg.py) must fit the firmware's peer-to-peer packet. */
+typedef char swarm_check_msg_fits_p2p[(SWARM_MSG_MAX_SIZE <= P2P_MAX_DATA_SIZE) ? 1 : -1];
+
 #define SWARM_BRAKE_MS 1000u
 /* Same level as setpoints from the ground station (CRTP): its manual commands still take over. */
 #define SWARM_COMMANDER_PRIORITY COMMANDER_PRIORITY_CRTP

@@ -42,7 +42,7 @@ void swarm_world_set_agent(swarm_world_t *w, uint8_t index, float x, float y, fl
     a->x = x; a->y = y; a->vx = vx; a->vy = vy;
     a->heard_ms = now_ms;
     a->heard = 1;
-    /* own sensing of an evader (the sim's update_knowledge); relayed sightings are not modelled here */
+    /* own sensing of an evader (the sim's update_knowledge); relayed sightings arrive in swarm_msg_receive */
     if (index != w->self && !is_team(index) && is_team(w->self) && me->heard
         && dist2(a, me->x, me->y) <= SWARM_SPEC_SENSING_RANGE * SWARM_SPEC_SENSING_RANGE) {
         a->seen_x = x; a->seen_y = y; a->seen_vx = vx; a->seen_vy = vy;
@@ -61,39 +61,77 @@ int swarm_world_set_obstacle(swarm_world_t *w, uint8_t slot, float x, float y, f
 
 /* ------------------------------------------------------------------------------------------ radio */
 
-static void put_u32(uint8_t *p, uint32_t v)
+/* A pursuer-team drone's knowledge of evader k: its own sensing (partial observability) or what it heard. */
+static int target_known(const swarm_agent_t *e, uint32_t *at_ms)
 {
-    p[0] = (uint8_t)v; p[1] = (uint8_t)(v >> 8); p[2] = (uint8_t)(v >> 16); p[3] = (uint8_t)(v >> 24);
+    *at_ms = SWARM_SPEC_FULL_OBSERVABILITY ? e->heard_ms : e->seen_ms;
+    return SWARM_SPEC_FULL_OBSERVABILITY ? e->heard : e->seen;
 }
 
-static uint32_t get_u32(const uint8_t *p)
-{
-    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
-}
-
-static void put_f32(uint8_t *p, float f) { uint32_t v; memcpy(&v, &f, 4); put_u32(p, v); }
-static float get_f32(const uint8_t *p) { uint32_t v = get_u32(p); float f; memcpy(&f, &v, 4); return f; }
-
-uint8_t swarm_msg_pack(const swarm_world_t *w, uint8_t *buf, uint8_t cap)
+uint8_t swarm_msg_pack(swarm_world_t *w, uint8_t *buf, uint8_t cap)
 {
     const swarm_agent_t *me = &w->agents[w->self];
-    if (cap < SWARM_MSG_SIZE) return 0;
-    buf[0] = SWARM_MSG_MAGIC;
-    buf[1] = SWARM_MSG_VERSION;
-    buf[2] = w->self;
-    buf[3] = 0;
-    put_u32(buf + 4, SWARM_POLICY_SPEC_HASH32);
-    put_f32(buf + 8, me->x); put_f32(buf + 12, me->y); put_f32(buf + 16, me->vx); put_f32(buf + 20, me->vy);
-    return SWARM_MSG_SIZE;
+    swarm_msg_t m;
+    uint32_t age[SWARM_SPEC_N_EVADERS];
+    uint8_t used = 0, k, size;
+    memset(&m, 0, sizeof(m));
+    m.sender = w->self;
+    m.epoch = w->epoch;
+    m.seq = w->seq;
+    m.t_tx_ms = m.t_state_ms = me->heard_ms;
+    m.x = me->x; m.y = me->y; m.vx = me->vx; m.vy = me->vy;
+    for (k = 0; k < SWARM_SPEC_N_EVADERS; ++k) {
+        uint32_t at;
+        age[k] = UINT32_MAX;  /* not known, or as old as the target memory: not relayed */
+        if (is_team(w->self) && target_known(&w->agents[SWARM_N_TEAM + k], &at)
+            && (float)(me->heard_ms - at) < SWARM_SPEC_TARGET_MEMORY * 1000.0f)
+            age[k] = me->heard_ms - at;
+    }
+    /* runtime.radio_msg's relay policy: freshest first (ties: lower evader), as many as fit */
+    while (m.n_sight < SWARM_MSG_RELAY_SIGHTINGS && cap >= SWARM_MSG_SIZE(m.n_sight + 1)) {
+        int best = -1;
+        for (k = 0; k < SWARM_SPEC_N_EVADERS; ++k) {
+            if (age[k] == UINT32_MAX || (used >> k) & 1u) continue;
+            if (best < 0 || age[k] < age[best]) best = k;
+        }
+        if (best < 0) break;
+        used |= (uint8_t)(1u << best);
+        {
+            const swarm_agent_t *e = &w->agents[SWARM_N_TEAM + best];
+            swarm_msg_sighting_t *g = &m.sight[m.n_sight++];
+            g->target = (uint8_t)best;
+            g->age = (float)age[best] * 0.001f;
+            g->x = SWARM_SPEC_FULL_OBSERVABILITY ? e->x : e->seen_x;
+            g->y = SWARM_SPEC_FULL_OBSERVABILITY ? e->y : e->seen_y;
+            g->vx = SWARM_SPEC_FULL_OBSERVABILITY ? e->vx : e->seen_vx;
+            g->vy = SWARM_SPEC_FULL_OBSERVABILITY ? e->vy : e->seen_vy;
+        }
+    }
+    size = swarm_msg_encode(&m, buf, cap);
+    if (size) w->seq++;
+    return size;
 }
 
 int swarm_msg_receive(swarm_world_t *w, const uint8_t *buf, uint8_t size, uint32_t now_ms)
 {
-    if (size < SWARM_MSG_SIZE || buf[0] != SWARM_MSG_MAGIC || buf[1] != SWARM_MSG_VERSION) return 0;
-    if (get_u32(buf + 4) != SWARM_POLICY_SPEC_HASH32) return 0;  /* a drone flying another spec */
-    if (buf[2] >= SWARM_N_AGENTS || buf[2] == w->self) return 0;
-    swarm_world_set_agent(w, buf[2], get_f32(buf + 8), get_f32(buf + 12), get_f32(buf + 16), get_f32(buf + 20),
-                          now_ms);
+    swarm_msg_t m;
+    uint8_t k;
+    const int err = swarm_msg_decode(buf, size, &m);
+    if (err != SWARM_MSG_OK) return -err;
+    if (m.sender == w->self || m.epoch != w->epoch) return 0;
+    swarm_world_set_agent(w, m.sender, m.x, m.y, m.vx, m.vy, now_ms);
+    /* relayed sightings (runtime.observation.update_knowledge's one hop): a fresher one replaces ours */
+    if (!SWARM_SPEC_FULL_OBSERVABILITY && is_team(w->self) && is_team(m.sender)) {
+        for (k = 0; k < m.n_sight; ++k) {
+            const swarm_msg_sighting_t *g = &m.sight[k];
+            swarm_agent_t *e = &w->agents[SWARM_N_TEAM + g->target];
+            const uint32_t at = now_ms - (uint32_t)(g->age * 1000.0f + 0.5f);
+            if (e->seen && (int32_t)(at - e->seen_ms) <= 0) continue;
+            e->seen_x = g->x; e->seen_y = g->y; e->seen_vx = g->vx; e->seen_vy = g->vy;
+            e->seen_ms = at;
+            e->seen = 1;
+        }
+    }
     return 1;
 }
 

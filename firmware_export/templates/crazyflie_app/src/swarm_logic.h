@@ -16,9 +16,8 @@
 #define SWARM_PEER_TIMEOUT_MS 1000u   /* a teammate or threat not heard for this long is dropped */
 #define SWARM_DEADMAN_MS 500u         /* no ground-station heartbeat for this long stops the policy */
 #define SWARM_WALL_MARGIN 0.15f       /* [m] no velocity towards a wall closer than this */
-#define SWARM_MSG_MAGIC 0x53u         /* 'S' */
-#define SWARM_MSG_VERSION 1u
-#define SWARM_MSG_SIZE 24u            /* magic, version, agent, flags, spec hash32, x, y, vx, vy */
+/* The radio message (SWARM_MSG_*, swarm_msg_t, swarm_msg_encode/decode) is generated into policy.h from
+ * runtime/radio_msg.py, the definition the Python runtime uses too. */
 
 typedef struct {
     float x, y, vx, vy;   /* last state heard [m, m/s; world frame] */
@@ -37,6 +36,8 @@ typedef struct {
     swarm_agent_t agents[SWARM_N_AGENTS];  /* agents[self]: own state estimate */
     swarm_obstacle_t obstacles[SWARM_MAX_OBSTACLES];
     uint8_t n_obstacles;
+    uint16_t epoch;       /* mission counter: messages of another epoch are ignored (0 unless set) */
+    uint16_t seq;         /* own message counter */
 } swarm_world_t;
 
 typedef struct {
@@ -50,9 +51,10 @@ int swarm_world_init(swarm_world_t *w, uint8_t self);
 void swarm_world_set_agent(swarm_world_t *w, uint8_t index, float x, float y, float vx, float vy, uint32_t now_ms);
 int swarm_world_set_obstacle(swarm_world_t *w, uint8_t slot, float x, float y, float r);
 
-/* Radio: pack the own state (returns the size, 0 if cap is too small); receive a peer's message (returns 1 if
- * accepted, 0 for another protocol, spec or an impossible agent index). */
-uint8_t swarm_msg_pack(const swarm_world_t *w, uint8_t *buf, uint8_t cap);
+/* Radio: pack the own state (stamped with its heard_ms) and the known targets, freshest first (returns the
+ * size, 0 if cap is too small); receive a peer's message: 1 if accepted, 0 for an echo of our own or another
+ * epoch, -SWARM_MSG_ERR_* (the reason) for another protocol, version, spec or a malformed message. */
+uint8_t swarm_msg_pack(swarm_world_t *w, uint8_t *buf, uint8_t cap);
 int swarm_msg_receive(swarm_world_t *w, const uint8_t *buf, uint8_t size, uint32_t now_ms);
 
 /* The observation of agent w->self at now_ms, as runtime.observation.encode_observations builds it. */
