@@ -1,7 +1,9 @@
 """The neighbour radio message: one definition for the Python runtime and the Crazyflie app.
 
 A drone broadcasts its own state and the target sightings it knows in one Crazyflie peer-to-peer packet
-(crazyflie-firmware ``src/hal/interface/radiolink.h``: ``P2P_MAX_DATA_SIZE 60`` bytes of payload). The
+(crazyflie-firmware ``src/hal/interface/radiolink.h``: ``P2P_MAX_DATA_SIZE 60`` bytes of payload; an
+older release says 61, so 60 fits both, and ``swarm_app.c`` checks it against the firmware's header when it
+is built). The
 layout below is the single source: ``runtime.comms`` packs and parses it with ``Codec``, and
 ``firmware_export.cgen`` generates the C struct offsets, scales and pack/unpack functions of the app from
 ``header_fields`` / ``sighting_fields`` (no size or offset is written by hand anywhere else).
