@@ -59,6 +59,7 @@ def _exact(n_sightings: int) -> struct.Struct:
 
 
 _EXACT = [_exact(n) for n in range(MAX_SIGHTINGS + 1)]
+_SENDER_AT = next(f.offset for f in radio_msg.HEADER_FIELDS if f.name == "sender")
 
 
 @dataclass(frozen=True)
@@ -337,12 +338,12 @@ class Radio:
         return True
 
     # -------------------------------------------------------------------------------------- receive
-    def _reject(self, exc: RadioMsgError) -> None:
+    def _reject(self, exc: RadioMsgError, data) -> None:
         st = self.stats
         if exc.reason in ("spec", "version"):
             setattr(st, f"dropped_{exc.reason}", getattr(st, f"dropped_{exc.reason}") + 1)
-            key = (exc.reason, 0)
-            if key not in self._warned:  # once per reason: a neighbour of another spec talks at 10 Hz
+            key = (exc.reason, bytes(data[_SENDER_AT:_SENDER_AT + 1]))
+            if key not in self._warned:  # once per sender and reason: a neighbour talks at 10 Hz
                 self._warned.add(key)
                 log.warning("agent %d ignores a neighbour: %s", self.index, exc)
         else:
@@ -359,7 +360,7 @@ class Radio:
         try:
             h = self.codec.check_header(data)
         except RadioMsgError as exc:
-            self._reject(exc)
+            self._reject(exc, data)
             return 0
         sender, n_s = h[3], h[5]
         packet = message_size(n_s)

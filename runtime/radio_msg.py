@@ -38,9 +38,10 @@ Quantization, from the spec (``Scales``): positions cover twice the arena's half
 times the fastest role's ``max_speed`` with int16 (+-32767 steps); the step is 1 mm and 1 mm/s unless the
 arena or speeds need coarser ones (a 3 m arena: 1 mm, range +-32.767 m; max speed 1.3 m/s: 1 mm/s). The
 age step is ``target_memory`` / 254 rounded up to a whole ms (12 ms for 3 s). Rounding is to the nearest
-step (halves away from zero), so the error is at most half a step. Values beyond the last step saturate at +-32767 (ages at 0 and
-254; a non-finite age at 254) and set ``FLAG_CLAMPED``; a non-finite position or velocity is sent as ``NAN_RAW`` (-32768) and the receiver
-rejects the message (``"non-finite"``) or that sighting, never wraps. Times are whole ms modulo 2^32 and are
+step (halves away from zero), so the error is at most half a step. Values beyond the last step saturate
+at +-32767 (ages at 0 and 254; a non-finite age at 254) and set ``FLAG_CLAMPED``; a non-finite position or
+velocity is sent as ``NAN_RAW`` (-32768) and the receiver rejects the whole message (``"non-finite"``);
+nothing wraps. Times are whole ms modulo 2^32 and are
 read back as the value nearest to the receiver's clock (``unwrap_ms``): exact within +-24 days.
 
 Relay policy: sightings younger than ``target_memory`` (older ones are unknown to the observation anyway),

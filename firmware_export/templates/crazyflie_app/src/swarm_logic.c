@@ -73,7 +73,8 @@ uint8_t swarm_msg_pack(swarm_world_t *w, uint8_t *buf, uint8_t cap)
     const swarm_agent_t *me = &w->agents[w->self];
     swarm_msg_t m;
     uint32_t age[SWARM_SPEC_N_EVADERS];
-    uint8_t used = 0, k, size;
+    uint32_t used = 0;  /* evaders < agents <= 32 (swarm_check_agents_fit_mask) */
+    uint8_t k, size;
     memset(&m, 0, sizeof(m));
     m.sender = w->self;
     m.epoch = w->epoch;
@@ -95,7 +96,7 @@ uint8_t swarm_msg_pack(swarm_world_t *w, uint8_t *buf, uint8_t cap)
             if (best < 0 || age[k] < age[best]) best = k;
         }
         if (best < 0) break;
-        used |= (uint8_t)(1u << best);
+        used |= 1u << best;
         {
             const swarm_agent_t *e = &w->agents[SWARM_N_TEAM + best];
             swarm_msg_sighting_t *g = &m.sight[m.n_sight++];
