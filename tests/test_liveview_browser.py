@@ -25,7 +25,7 @@ webdriver = pytest.importorskip("selenium.webdriver")
 from flight_fixtures import small_spec, wait_until, write_models  # noqa: E402
 from groundstation.demo import DemoOptions, run_demo  # noqa: E402
 from groundstation.liveview import LiveView  # noqa: E402
-from test_liveview import post  # noqa: E402
+from test_liveview import post, tolerant_flight  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = ROOT / "results" / "liveview.png"
@@ -56,7 +56,8 @@ def test_page_draws_the_swarm_updates_and_lands_it(browser, tmp_path):
     with LiveView(port=0) as view:
         def fly():
             try:
-                box["result"] = run_demo(DemoOptions(duration=40.0, models=str(models), seed=6), view=view)
+                box["result"] = run_demo(DemoOptions(duration=40.0, models=str(models), seed=6,
+                                                     flight=str(tolerant_flight(tmp_path))), view=view)
             except BaseException as exc:  # handed to the test
                 box["error"] = exc
 
