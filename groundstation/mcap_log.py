@@ -31,7 +31,7 @@ topic                          schema                    content
 =============================  ========================  ==========================================================
 
 Messages go out in chunks of ``chunk_size`` bytes (64 KiB): a flight cut short (Ctrl-C, a killed process)
-loses at most the last chunk, and the reader still reads what was written without the summary.
+loses at most the last chunk, and ``read_log`` reads the chunks written before the cut (no summary needed).
 """
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ import logging
 import threading
 import time
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from groundstation.flight import JsonlRecorder
 
@@ -293,7 +293,7 @@ def read_log(path: str | Path) -> list[dict]:
     if not p.is_file():
         raise LogError(f"{p}: no such flight log: give the file that --log wrote")
     if p.suffix.lower() == ".mcap":
-        return list(_read_mcap(p))
+        return _read_mcap(p)
     rows = []
     with p.open() as fh:
         for k, line in enumerate(fh, 1):
@@ -308,16 +308,38 @@ def read_log(path: str | Path) -> list[dict]:
     return rows
 
 
-def _read_mcap(p: Path) -> Iterable[dict]:
+WANTED = ("/events", "/metrics", "/scene/static")
+
+
+def _wanted(topic: str) -> bool:
+    return topic in WANTED or (topic.startswith("/drones/") and topic.endswith("/status"))
+
+
+def _read_mcap(p: Path) -> list[dict]:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
     with p.open("rb") as fh:
         try:
-            reader = make_reader(fh)
-            for _schema, channel, message in reader.iter_messages(log_time_order=True):
-                topic = channel.topic
-                if topic in ("/events", "/metrics", "/scene/static") or \
-                        (topic.startswith("/drones/") and topic.endswith("/status")):
-                    yield json.loads(message.data)
-        except McapError as exc:
-            raise LogError(f"{p}: not a readable MCAP flight log: {exc}") from None
+            return [json.loads(m.data) for _s, c, m in make_reader(fh).iter_messages(log_time_order=True)
+                    if _wanted(c.topic)]
+        except (McapError, ValueError, EOFError) as exc:
+            first = exc
+    # no summary or footer: a flight cut short (Ctrl-C, a killed process). Read its records in file order up to
+    # where the file ends (the chunks written before the cut).
+    rows: list[dict] = []
+    topics: dict[int, str] = {}
+    with p.open("rb") as fh:
+        try:
+            for rec in StreamReader(fh).records:
+                if isinstance(rec, Channel):
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Message) and _wanted(topics.get(rec.channel_id, "")):
+                    rows.append(json.loads(rec.data))
+        except (McapError, ValueError, EOFError) as exc:
+            if not rows:
+                raise LogError(f"{p}: not a readable MCAP flight log: {first}") from None
+            log.warning("%s: ends without its summary (%s): the flight log was cut short; read %d rows",
+                        p, exc, len(rows))
+    return sorted(rows, key=lambda r: float(r.get("t", 0.0)))

@@ -152,3 +152,21 @@ def test_replay_and_report_take_either_format(logs, capsys):
     with pytest.raises(SystemExit) as exit_:
         cli.main(["replay", str(jsonl_path.with_name("nothing.jsonl"))])
     assert exit_.value.code == 2 and "nothing.jsonl" in capsys.readouterr().err
+
+
+def test_an_mcap_cut_short_reads_up_to_the_cut(tmp_path):
+    """A process killed mid-flight leaves an MCAP without its summary: read_log reads the chunks written."""
+    import subprocess
+    import sys
+    path = tmp_path / "cut.mcap"
+    code = ("import os\nfrom groundstation.mcap_log import McapRecorder\n"
+            f"r = McapRecorder({str(path)!r}, chunk_size=2048)\n"
+            "for k in range(300):\n"
+            "    r({'t': round(k * 0.1, 4), 'drone': 'cf0', 'role': 'pursuer', 'actor': 'pursuer_0', 'state': 'flying',"
+            " 'position': [k * 0.01, 0.0, 0.5], 'setpoint': None, 'battery': 3.9, 'link_quality': 1.0,"
+            " 'telemetry_age': 0.0})\n"
+            "os._exit(0)  # killed: no close, no summary\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+    rows = read_log(path)
+    assert 50 < len(rows) <= 300
+    assert [r["t"] for r in rows] == [round(k * 0.1, 4) for k in range(len(rows))]  # a prefix, in order
