@@ -35,6 +35,9 @@ from runtime.spec import ENGINES, SpecError, SwarmSpec
 log = logging.getLogger(__name__)
 
 _CTX = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
+PROCESS_START_TIMEOUT_S = 120.0
+"""With processes: how long the world and the agent processes may take to be built before the run is called
+off [s] (loading models and compiling numba takes seconds each on a cold, busy machine)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -191,7 +194,42 @@ class WorldSink:
 # the world process
 
 
-def _world_main(board_name: str, spec_dict: dict, seed: int, t0: float, t_end: float, out: mp.Queue) -> None:
+def _await_start(start: "StartGate | None", t0: float, t_end: float, ready: "mp.Queue | None",
+                 who: str) -> tuple[float, float] | None:
+    """In process mode, report ``who`` ready and wait for the parent's start time (None: the run was called
+    off); in-process, (t0, t_end) as given."""
+    if start is None:
+        return t0, t_end
+    ready.put(who)
+    return start.wait()
+
+
+class StartGate:
+    """The start of a run with processes: each process reports ready once it is built (models loaded, numba
+    compiled, sockets bound), and the clock starts when all have, so that a slow start on a busy machine
+    delays the run instead of faulting agents that were still loading."""
+
+    def __init__(self, ctx) -> None:
+        self._times = ctx.Array("d", 2)
+        self._go = ctx.Event()
+
+    def open(self, t0: float, t_end: float) -> None:
+        self._times[0], self._times[1] = t0, t_end
+        self._go.set()
+
+    def call_off(self) -> None:
+        self._times[0] = self._times[1] = float("nan")
+        self._go.set()
+
+    def wait(self, timeout: float = 600.0) -> tuple[float, float] | None:
+        if not self._go.wait(timeout):
+            return None
+        t0, t_end = self._times[0], self._times[1]
+        return None if t0 != t0 else (t0, t_end)
+
+
+def _world_main(board_name: str, spec_dict: dict, seed: int, t0: float, t_end: float, out: mp.Queue,
+                start: StartGate | None = None, ready: "mp.Queue | None" = None) -> None:
     from runtime.metrics import MetricsAccumulator, summarize
     from runtime.world import World
     try:
@@ -207,6 +245,11 @@ def _world_main(board_name: str, spec_dict: dict, seed: int, t0: float, t_end: f
         steps = 0
         late = []
         act = np.zeros((1, spec.n_agents, 2))
+        times = _await_start(start, t0, t_end, ready, "world")
+        if times is None:
+            return
+        t0, t_end = times
+        board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], time.monotonic(), episode)
         nxt = t0 + dt
         while nxt <= t_end and not board.stopped:
             rest = nxt - time.monotonic()
@@ -263,7 +306,8 @@ class RunConfig:
     """``sys.setswitchinterval`` for the agents' process (threads mode): how long a waking agent can wait
     for another thread's interpreter lock; None keeps Python's 5 ms."""
     startup_s: float = 0.5
-    """Delay between launching and the first tick, for processes to come up [s]."""
+    """Delay before the first tick [s]: after launching the agents (threads), or after every process has
+    reported ready (processes: ``StartGate``)."""
     engine: str = "onnxruntime"
     """How each actor runs (``runtime.spec.ENGINES``): onnxruntime, or the compiled MLP proved equal to it."""
 
@@ -293,7 +337,7 @@ def _agent_result(agent: Agent, radio: Radio | None) -> dict:
 
 
 def _agent_main(index: int, models: str, board_name: str, ports: list[int], cfg: RunConfig, t0: float,
-                t_end: float, out: mp.Queue) -> None:
+                t_end: float, out: mp.Queue, start: StartGate | None = None, ready: "mp.Queue | None" = None) -> None:
     from runtime.policy import load_models
     try:
         manifest, (pol,) = load_models(models, agents=[index], engine=cfg.engine)
@@ -302,6 +346,14 @@ def _agent_main(index: int, models: str, board_name: str, ports: list[int], cfg:
         radio = Radio(spec, index, UdpTransport(index, ports), cfg.comms)
         agent = Agent(index, spec, pol, WorldSource(board, spec), WorldSink(board, spec), radio,
                       _agent_config(spec, cfg, index))
+        pol.act(agent.obs, out=agent.action)  # onnxruntime's first call, before the clock
+        agent.action[:] = 0.0
+        times = _await_start(start, t0, t_end, ready, f"agent {index}")
+        if times is None:
+            radio.close()
+            board.close()
+            return
+        t0, t_end = times
         agent.start(t0)
         while time.monotonic() < t_end and not board.stopped:
             time.sleep(min(0.05, max(0.0, t_end - time.monotonic())))
@@ -360,19 +412,42 @@ def run_swarm(models: str | Path, cfg: RunConfig) -> dict:
     load_before = os.getloadavg()[0]
     cpu_before = time.process_time()
     try:
-        start = time.monotonic() + cfg.startup_s + (0.1 * n if cfg.processes else 0.0)
+        start = time.monotonic() + cfg.startup_s
         t_end = start + cfg.duration_s
-        world = _CTX.Process(target=_world_main, args=(board.name, spec.to_dict(), cfg.seed, start, t_end, results),
-                             name="swarm-world", daemon=True)
+        gate = StartGate(_CTX) if cfg.processes else None
+        ready: "mp.Queue | None" = _CTX.Queue() if cfg.processes else None
+        world = _CTX.Process(target=_world_main, args=(board.name, spec.to_dict(), cfg.seed, start, t_end, results,
+                                                        gate, ready), name="swarm-world", daemon=True)
         world.start()
         procs.append(world)
         if cfg.processes:
             ports = free_udp_ports(n)
             for i in range(n):
                 p = _CTX.Process(target=_agent_main, args=(i, str(models), board.name, ports, cfg, start, t_end,
-                                                           results), name=f"swarm-agent-{i}", daemon=True)
+                                                           results, gate, ready), name=f"swarm-agent-{i}",
+                                 daemon=True)
                 p.start()
                 procs.append(p)
+            # the clock starts when the world and every agent process are built (a busy machine only waits)
+            waiting, deadline = n + 1, time.monotonic() + PROCESS_START_TIMEOUT_S
+            while waiting and time.monotonic() < deadline:
+                try:
+                    ready.get(timeout=0.5)
+                    waiting -= 1
+                except queue.Empty:
+                    if not all(p.is_alive() for p in procs):
+                        break
+            if waiting:
+                gate.call_off()
+                try:
+                    kind, val = results.get(timeout=5.0)
+                    why = val if kind.endswith("error") else "a process ended before it was ready"
+                except queue.Empty:
+                    why = f"{waiting} of {n + 1} processes were not ready after {PROCESS_START_TIMEOUT_S:.0f} s"
+                raise RuntimeError(f"the run did not start: {why}")
+            start = time.monotonic() + cfg.startup_s
+            t_end = start + cfg.duration_s
+            gate.open(start, t_end)
         else:
             if cfg.switch_interval_s is not None:
                 sys.setswitchinterval(cfg.switch_interval_s)
