@@ -62,6 +62,9 @@ log = logging.getLogger(__name__)
 RESULT_KEYS = ("mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate", "coverage",
                "collisions_per_episode", "episodes", "landed", "geofence_violations", "setpoint_latency_p99_ms",
                "drone_contacts", "min_pair_distance", "pairs_below_min_distance", "separation")
+PAIR_PERIOD_S = 0.02
+"""How often the demo samples the simulators' ground truth for the closest pair [s] (one message to the
+simulators' process; the simulator itself counts every contact at 10 ms)."""
 LANDED_Z = 0.05
 """A simulated drone at or below this height with its motors off has landed [m] (``landed``; ``locked`` counts
 those of them whose firmware cut the motors instead: a watchdog after link loss, or an emergency stop)."""
@@ -461,7 +464,7 @@ def _fly(opts, spec, session: FlightSession, sims: "SimSwarm | SimProcess", link
                 if not session.flying():
                     break
                 pairs.update(sims.truths())
-                time.sleep(0.01)
+                time.sleep(PAIR_PERIOD_S)
         t_end = time.monotonic()
         sent1 = [link.stats() for link in links]
         session.stop_mission()
