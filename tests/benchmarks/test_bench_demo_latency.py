@@ -9,10 +9,13 @@ and the simulator records its arrival. So a sample is the whole path a real dron
 cflib -> ``Link`` telemetry callback -> position tracker -> separation filter -> geofence -> ``send_velocity``
 -> cflib -> simulator socket.
 
+The live view's cost (issue 14): the same demo with the view open and one WebSocket client (another process)
+reading every frame, against no view (``--view``).
+
 Run (slow, not in the default suite; nothing else should run on the machine):
     .venv/bin/python -m pytest -q -s -m slow tests/benchmarks/test_bench_demo_latency.py
 or standalone, printing JSON:
-    .venv/bin/python tests/benchmarks/test_bench_demo_latency.py --rounds 3 --duration 20
+    .venv/bin/python tests/benchmarks/test_bench_demo_latency.py --rounds 3 --duration 20 [--view]
 """
 from __future__ import annotations
 
@@ -33,22 +36,83 @@ P99_TARGET_MS = 10.0
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def fly_once(sim_in_process: bool, duration: float, seed: int) -> dict:
+def _ws_client(url: str, stop, counts) -> None:
+    """A browser tab's share of the work: read every pushed frame of the live view (another process)."""
+    import asyncio
+
+    import aiohttp
+
+    async def main() -> None:
+        async with aiohttp.ClientSession() as http:
+            while not stop.is_set():
+                try:
+                    async with http.ws_connect(url.replace("http", "ws") + "ws") as ws:
+                        while not stop.is_set():
+                            try:
+                                msg = await ws.receive(timeout=0.5)
+                            except asyncio.TimeoutError:
+                                continue
+                            if msg.type != aiohttp.WSMsgType.TEXT:
+                                break
+                            json.loads(msg.data)
+                            counts.value += 1
+                except aiohttp.ClientError:
+                    await asyncio.sleep(0.1)
+    asyncio.run(main())
+
+
+def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = False) -> dict:
+    import multiprocessing as mp
+
     from groundstation.demo import DemoOptions, run_demo
     logging.getLogger("groundstation").setLevel(logging.ERROR)
-    with tempfile.TemporaryDirectory(prefix="bench-demo-") as tmp:
-        opts = DemoOptions(duration=duration, seed=seed, sim_in_process=sim_in_process,
-                           models=str(ROOT / "models" / "role_based"), fence=str(ROOT / "configs" / "fence.toml"),
-                           anchors=str(ROOT / "configs" / "lps_anchors.toml"), json_path=str(Path(tmp) / "d.json"))
-        t0 = time.monotonic()
-        res = run_demo(opts)
-        wall = time.monotonic() - t0
+    live, client, stop, counts = None, None, None, None
+    if view:  # the live view open with one client connected, reading every frame
+        from groundstation.liveview import LiveView
+        live = LiveView(0).start()
+        ctx = mp.get_context("spawn")
+        stop, counts = ctx.Event(), ctx.Value("i", 0)
+        client = ctx.Process(target=_ws_client, args=(live.url, stop, counts), daemon=True)
+        client.start()
+    try:
+        with tempfile.TemporaryDirectory(prefix="bench-demo-") as tmp:
+            opts = DemoOptions(duration=duration, seed=seed, sim_in_process=sim_in_process,
+                               models=str(ROOT / "models" / "role_based"),
+                               fence=str(ROOT / "configs" / "fence.toml"),
+                               anchors=str(ROOT / "configs" / "lps_anchors.toml"), json_path=str(Path(tmp) / "d.json"))
+            t0 = time.monotonic()
+            res = run_demo(opts, view=live)
+            wall = time.monotonic() - t0
+    finally:
+        if client is not None:
+            stop.set()
+            client.join(timeout=5.0)
+            if client.is_alive():
+                client.terminate()
+        if live is not None:
+            live.stop()
     keys = ("setpoint_latency_p50_ms", "setpoint_latency_p99_ms", "setpoint_latency_samples",
             "ground_station_latency_p50_ms", "ground_station_latency_p99_ms", "ground_station_stalls",
             "drone_contacts", "landed", "mission_s")
     out = {k: res.get(k) for k in keys}
-    out.update(simulator=res.get("simulator"), wall_s=round(wall, 1), load_avg_1m=os.getloadavg()[0])
+    out.update(simulator=res.get("simulator"), wall_s=round(wall, 1), load_avg_1m=os.getloadavg()[0],
+               view=view, view_frames=counts.value if counts is not None else None)
     return out
+
+
+def measure_view(rounds: int = 2, duration: float = 10.0) -> dict:
+    """Issue 14: the same demo (simulators in their own process) with and without the live view open and one
+    client connected, alternating."""
+    runs = {"no view": [], "view + 1 client": []}
+    for r in range(rounds):
+        for view in ((False, True) if r % 2 == 0 else (True, False)):
+            runs["view + 1 client" if view else "no view"].append(fly_once(False, duration, seed=r, view=view))
+    summary = {name: {"p50_ms_median": float(np.median([x["setpoint_latency_p50_ms"] for x in rs])),
+                      "p99_ms_median": float(np.median([x["setpoint_latency_p99_ms"] for x in rs])), "runs": rs}
+               for name, rs in runs.items()}
+    return {"drones": 12, "rounds": rounds, "duration_s": duration, "arms": summary,
+            "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+            "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
 
 
 def measure(rounds: int = 2, duration: float = 10.0) -> dict:
@@ -83,9 +147,24 @@ def test_demo_setpoint_path_in_and_out_of_process():
     assert own <= P99_TARGET_MS, f"p99 {own:.2f} ms > {P99_TARGET_MS} ms (load {os.getloadavg()})"
 
 
+@pytest.mark.slow
+def test_the_live_view_does_not_slow_the_setpoint_path():
+    pytest.importorskip("cflib")
+    res = measure_view(rounds=2, duration=10.0)
+    print(json.dumps(res, indent=1))
+    for run in res["arms"]["view + 1 client"]["runs"]:
+        assert run["view_frames"] >= 10 * 10 * 0.8, run  # the client got its >= 10 Hz during the mission
+    for arm in res["arms"].values():
+        for run in arm["runs"]:
+            assert run["landed"] == 12 and run["drone_contacts"] == 0, run
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rounds", type=int, default=2, help="rounds; each flies both simulator placements once")
+    ap.add_argument("--rounds", type=int, default=2, help="rounds; each flies both arms once")
     ap.add_argument("--duration", type=float, default=10.0, help="mission seconds per flight")
+    ap.add_argument("--view", action="store_true",
+                    help="compare the live view open with one client connected against no view (issue 14) "
+                         "instead of the simulators' placement")
     a = ap.parse_args()
-    print(json.dumps(measure(a.rounds, a.duration), indent=1))
+    print(json.dumps(measure_view(a.rounds, a.duration) if a.view else measure(a.rounds, a.duration), indent=1))
