@@ -240,7 +240,6 @@ def _world_main(board_name: str, spec_dict: dict, seed: int, t0: float, t_end: f
         metrics = MetricsAccumulator(spec, 1)
         metrics.begin_episodes(np.array([0]), s.obstacle_pos, s.obstacle_radius)
         episode = 0
-        board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], time.monotonic(), episode)
         dt = spec.timing.control_period
         steps = 0
         late = []

@@ -163,3 +163,17 @@ class ScriptedLink:
                 pass
 
         return _Scripted(uri)
+
+
+def write_fleet(path, models, spec_toml, uris, root, evader: int = 2):
+    """A fleet file at ``path`` for simulated drones at ``uris`` (drone ``evader`` on the evader team), with the
+    repository's fence and anchors under ``root`` and a quick flight; returns the path."""
+    from pathlib import Path
+    drones = "".join(f'[[fleet.drones]]\nid = "cf{i}"\nuri = "{u}"\nteam = "{"evader" if i == evader else "pursuer"}"\n'
+                     for i, u in enumerate(uris))
+    path = Path(path)
+    path.write_text(f'[fleet]\nmodels = "{models}"\nspec = "{spec_toml}"\n'
+                    f'fence = "{root / "configs" / "fence.toml"}"\n'
+                    f'anchors = "{root / "configs" / "lps_anchors.toml"}"\n{drones}'
+                    "[flight]\nheight = 0.5\ntakeoff_duration = 1.0\ntakeoff_stagger = 0.05\nland_speed = 0.5\n")
+    return path

@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("cflib")
 
-from flight_fixtures import on_ground, open_sim_links, quick_flight, small_spec, wait_until, write_models  # noqa: E402
+from flight_fixtures import on_ground, open_sim_links, quick_flight, small_spec, wait_until, write_fleet, write_models  # noqa: E402
 from groundstation import cli  # noqa: E402
 from groundstation.demo import draw_obstacles, start_positions  # noqa: E402
 from groundstation.flight import DroneStatus, close_links, FlightConfig, FlightSession, PreflightError  # noqa: E402
@@ -203,13 +203,7 @@ def test_fleet_commands_over_udp(tmp_path, capsys):
     fence = FenceConfig.from_toml(ROOT / "configs" / "fence.toml")
     starts = start_positions(fence, 3, seed=4)
     with SimSwarm(3, base_port=free_base_port(3, seed=24), seed=4, start_positions=starts) as sims:
-        drones = "".join(f'[[fleet.drones]]\nid = "cf{i}"\nuri = "{u}"\nteam = "{"evader" if i == 2 else "pursuer"}"\n'
-                         for i, u in enumerate(sims.uris))
-        fleet = tmp_path / "fleet.toml"
-        fleet.write_text(f'[fleet]\nmodels = "{models}"\nspec = "{tmp_path / "spec.toml"}"\n'
-                         f'fence = "{ROOT / "configs" / "fence.toml"}"\n'
-                         f'anchors = "{ROOT / "configs" / "lps_anchors.toml"}"\n{drones}'
-                         "[flight]\nheight = 0.5\ntakeoff_duration = 1.0\ntakeoff_stagger = 0.05\nland_speed = 0.5\n")
+        fleet = write_fleet(tmp_path / "fleet.toml", models, tmp_path / "spec.toml", sims.uris, ROOT)
         assert cli.main(["status", "--fleet", str(fleet)]) == 0
         out = capsys.readouterr().out
         assert out.count("landed") == 3 and "fence low" in out

@@ -21,7 +21,7 @@ import pytest
 pytest.importorskip("cflib")
 pytest.importorskip("aiohttp")
 
-from flight_fixtures import open_sim_links, quick_flight, small_spec, wait_until, write_models  # noqa: E402
+from flight_fixtures import open_sim_links, quick_flight, small_spec, wait_until, write_fleet, write_models  # noqa: E402
 from groundstation.demo import DemoError, DemoOptions, draw_obstacles, run_demo, start_positions  # noqa: E402
 from groundstation.flight import DroneStatus, FlightSession, close_links  # noqa: E402
 from groundstation.liveview import LiveView, SessionSource, ViewError, scene  # noqa: E402
@@ -249,13 +249,7 @@ def test_fly_view_lands_a_fleet_and_a_taken_port_is_refused(tmp_path, capsys):
     n = 3
     with SimSwarm(n, base_port=free_base_port(n, seed=29), seed=4, start_positions=start_positions(fence, n, 4)) \
             as sims:
-        drones = "".join(f'[[fleet.drones]]\nid = "cf{i}"\nuri = "{u}"\nteam = "{"evader" if i == 2 else "pursuer"}"\n'
-                         for i, u in enumerate(sims.uris))
-        fleet = tmp_path / "fleet.toml"
-        fleet.write_text(f'[fleet]\nmodels = "{models}"\nspec = "{tmp_path / "spec.toml"}"\n'
-                         f'fence = "{root / "configs" / "fence.toml"}"\n'
-                         f'anchors = "{root / "configs" / "lps_anchors.toml"}"\n{drones}'
-                         "[flight]\nheight = 0.5\ntakeoff_duration = 1.0\ntakeoff_stagger = 0.05\nland_speed = 0.5\n")
+        fleet = write_fleet(tmp_path / "fleet.toml", models, tmp_path / "spec.toml", sims.uris, root)
         # a taken port: one line naming --view, before any link opens
         with socket.socket() as taken:
             taken.bind(("127.0.0.1", 0))

@@ -301,7 +301,7 @@ class Trainer:
         tc = self.tc
         learns = self._learns
         teach = None
-        if self.teacher is not None:
+        if self.teacher is not None and (self.imitating() or tc.imitation_weight > 0):  # else nobody reads it
             teach = np.clip(np.asarray(self.teacher.act(obs, self.env), dtype=np.float64), -1.0, 1.0)
         if self.imitating():  # DAgger: the teacher flies a share beta of the envs, the learners the rest
             a = self.agent.act(obs, self.noise_std(), self.noise_gen).cpu().numpy().astype(np.float64)

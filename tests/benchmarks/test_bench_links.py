@@ -37,24 +37,15 @@ one packet down) per USB round trip, and full-speed USB bulk transfers are sched
 estimate, not measured here (no radio on this machine)."""
 
 
-class _SimInProcess:
-    def __init__(self, n: int, base_port: int) -> None:
-        from groundstation.sim.swarm import SimSwarm
-        self.sims = SimSwarm(n, base_port=base_port, seed=0, latency_probe=True).start()
+class _Sim:
+    """The simulators in the ground station's interpreter (``SimSwarm``) or in a process of their own
+    (``SimProcess``, as ``swarm-gs demo`` runs them)."""
 
-    def report(self):
-        return self.sims.latency_samples(), self.sims.packet_counts()
-
-    def stop(self) -> None:
-        self.sims.stop()
-
-
-class _SimOtherProcess:
-    """The simulators in a process of their own (``SimProcess``, as ``swarm-gs demo`` runs them)."""
-
-    def __init__(self, n: int, base_port: int) -> None:
+    def __init__(self, n: int, base_port: int, in_process: bool) -> None:
         from groundstation.sim.remote import SimProcess
-        self.sims = SimProcess(n, base_port=base_port, seed=0, latency_probe=True).start()
+        from groundstation.sim.swarm import SimSwarm
+        cls = SimSwarm if in_process else SimProcess
+        self.sims = cls(n, base_port=base_port, seed=0, latency_probe=True).start()
 
     def report(self):
         return self.sims.latency_samples(), self.sims.packet_counts()
@@ -71,7 +62,7 @@ def measure(n: int = 12, period_ms: int = 20, setpoint_hz: float = 50.0, duratio
     logging.getLogger("groundstation.cflib_link").setLevel(logging.ERROR)  # "closing while flying" x 12
 
     base = free_base_port(n)
-    sim = _SimInProcess(n, base) if sim_in_process else _SimOtherProcess(n, base)
+    sim = _Sim(n, base, sim_in_process)
     uris = [f"udp://127.0.0.1:{base + i}" for i in range(n)]
     cache = tempfile.mkdtemp(prefix="bench_links_cache_")
     links = []
