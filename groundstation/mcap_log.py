@@ -1,11 +1,11 @@
 """Flight logs as MCAP for Foxglove, and the one place that picks a log's format by its suffix.
 
 ``open_recorder(path, scene)`` returns the recorder a ``FlightSession`` writes its rows to: ``McapRecorder``
-for ``*.mcap``, ``flight.JsonlRecorder`` (JSON lines) for anything else. ``read_log(path)`` reads either back
-as the same list of rows (``swarm-gs replay`` and ``report`` use it).
+for ``*.mcap``, ``flight_records.JsonlRecorder`` (JSON lines) for anything else. ``read_log(path)`` reads
+either back as the same list of rows (``swarm-gs replay`` and ``report`` use it).
 
-The rows are the flight log's (``FlightSession._write_rows`` and ``_event``): a *state row* per drone and
-record period (``drone``, ``role``, ``actor``, ``state``, ``position``, ``setpoint``, ...) and an *event row*
+The rows are the flight log's (``flight_records.SessionCore._write_rows`` and ``_event``): a *state row* per
+drone and record period (``drone``, ``role``, ``actor``, ``state``, ``position``, ``setpoint``, ...) and an *event row*
 (``event``, ``drone``, ``detail``, ...). Two event kinds carry no failsafe: ``scene`` (the fence, keep-out
 circles and anchors, first row of a log written through ``open_recorder``) and ``metrics`` (the paper's
 metrics so far, written by the demo once a second).
@@ -42,7 +42,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from groundstation.flight import JsonlRecorder
+from groundstation.flight_records import JsonlRecorder
 
 log = logging.getLogger(__name__)
 
