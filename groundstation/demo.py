@@ -8,7 +8,9 @@ become keep-out circles of the fence (the simulator has no physical obstacles, s
 drones out of them). Preflight, role assignment, staggered takeoff, the mission flown by the exported actors
 (``mission.AgentPilot``: one ``runtime.agent.Agent`` per actor), landing; then the paper's metrics
 (``runtime.metrics``, one episode per ``spec.timing.episode_steps`` control periods), link statistics, a
-JSON-lines flight log and a picture.
+JSON-lines flight log and a picture. What is measured during the flight is in ``demo_metrics`` (the paper's
+metrics take their distances and contacts from a ``runtime.world.World`` holding the measured positions, so
+they count contacts as evaluation does), the result dict, summary and picture in ``demo_report``.
 
 Separation: every setpoint passes the separation filter (``groundstation.separation``) unless
 ``separation=False`` (``--no-separation``, for comparisons only). The simulated drones crash when two touch;
@@ -31,17 +33,15 @@ import json
 import logging
 import math
 import random
-import selectors
-import socket
 import tempfile
-import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
+from groundstation.demo_metrics import LANDED_Z, EpisodeMetrics, PairMonitor, on_ground
+from groundstation.demo_report import format_summary, plot_flight, results, separation_results
 from groundstation.flight import FlightConfig, FlightSession, close_links
 from groundstation.link import LinkError, open_link
 from groundstation.mission import AgentPilot
@@ -49,13 +49,15 @@ from groundstation.positioning import AnchorLayout
 from groundstation.roles import EVADER_TEAM, PURSUER_TEAM
 from groundstation.safety import FenceConfig, KeepOut, in_safe_set
 from groundstation.separation import SeparationConfig
+from groundstation.sim.relay import LossyRelay
 from groundstation.sim.remote import SimProcess
 from groundstation.sim.swarm import SimSwarm, free_base_port
 from runtime.cliutil import json_safe, write_text_atomic
-from runtime.metrics import MetricsAccumulator
-from runtime.paper import FLIGHT_TEAM, PAPER
 from runtime.policy import load_models, read_manifest
 from runtime.spec import SwarmSpec, load_toml
+
+__all__ = ["LANDED_Z", "RESULT_KEYS", "DemoError", "DemoInterrupted", "DemoOptions", "EpisodeMetrics", "LossyRelay",
+           "PairMonitor", "draw_obstacles", "format_summary", "plot_flight", "run_demo", "start_positions"]
 
 log = logging.getLogger(__name__)
 
@@ -65,11 +67,6 @@ RESULT_KEYS = ("mean_min_dist", "mean_avg_dist", "mean_max_dist", "tracking_rate
 PAIR_PERIOD_S = 0.02
 """How often the demo samples the simulators' ground truth for the closest pair [s] (one message to the
 simulators' process; the simulator itself counts every contact at 10 ms)."""
-LANDED_Z = 0.05
-"""A simulated drone at or below this height with its motors off has landed [m] (``landed``; ``locked`` counts
-those of them whose firmware cut the motors instead: a watchdog after link loss, or an emergency stop)."""
-
-
 METRICS_PERIOD = 1.0
 """How often the demo writes the metrics so far to the flight log (an ``event: metrics`` row) [s]."""
 
@@ -160,139 +157,6 @@ def start_positions(fence: FenceConfig, n: int, seed: int, spacing: float = 0.7,
                 return np.array([[x, y, 0.0] for x, y in chosen])
     raise DemoError(f"cannot place {n} drones {spacing} m apart inside the fence's safe area: enlarge the fence "
                     f"or use fewer obstacles")
-
-
-class LossyRelay:
-    """UDP relay between cflib and the simulators that drops datagrams with probability ``loss``."""
-
-    def __init__(self, targets: list[int], loss: float, seed: int = 0, host: str = "127.0.0.1") -> None:
-        self.loss = loss
-        self.host = host
-        self.targets = targets
-        self._rng = random.Random(seed)
-        self._sel = selectors.DefaultSelector()
-        self._front: list[socket.socket] = []
-        self._back: list[socket.socket] = []
-        self._client: list[tuple[str, int] | None] = [None] * len(targets)
-        self.ports: list[int] = []
-        self.dropped = 0
-        self.forwarded = 0
-        for i, port in enumerate(targets):
-            f = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            f.bind((host, 0))
-            f.setblocking(False)
-            b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            b.connect((host, port))
-            b.setblocking(False)
-            self._sel.register(f, selectors.EVENT_READ, (i, True))
-            self._sel.register(b, selectors.EVENT_READ, (i, False))
-            self._front.append(f)
-            self._back.append(b)
-            self.ports.append(f.getsockname()[1])
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="LossyRelay", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            for key, _ in self._sel.select(0.05):
-                i, from_client = key.data
-                while True:
-                    try:
-                        data, addr = key.fileobj.recvfrom(256)
-                    except (BlockingIOError, InterruptedError):
-                        break
-                    except OSError:
-                        break
-                    if from_client:
-                        self._client[i] = addr
-                    if self._rng.random() < self.loss:
-                        self.dropped += 1
-                        continue
-                    try:
-                        if from_client:
-                            self._back[i].send(data)
-                        elif self._client[i] is not None:
-                            self._front[i].sendto(data, self._client[i])
-                        self.forwarded += 1
-                    except OSError:
-                        pass
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=1.0)
-        self._sel.close()
-        for s in self._front + self._back:
-            s.close()
-
-
-class EpisodeMetrics:
-    """``runtime.metrics`` over the flight: one episode per ``spec.timing.episode_steps`` control periods (a
-    shorter last episode counts too). Agents are the actors in spec order at the measured position of the
-    drone flying each; an actor left without a drone stays where its last drone was (and takes no part in
-    contacts). A capture is the onset of a pursuer-team agent within ``capture_distance`` of an evader."""
-
-    def __init__(self, spec: SwarmSpec, obstacles: np.ndarray, capture_distance: float | None = None) -> None:
-        self.spec = spec
-        self.capture_distance = spec.sensing.sensing_range if capture_distance is None else capture_distance
-        nt = spec.team.n_team
-        self.cross = np.zeros((spec.n_agents, spec.n_agents), dtype=bool)
-        self.cross[:nt, nt:] = self.cross[nt:, :nt] = True
-        self.acc = MetricsAccumulator(spec, 1)
-        self.obstacle_pos = obstacles[None, :, :2]
-        self.obstacle_radius = obstacles[None, :, 2]
-        self.radius = np.array(spec.per_agent("radius"))
-        self.steps = 0
-        self.trail: list[tuple[float, np.ndarray, np.ndarray]] = []
-        self._lock = threading.Lock()
-        self.acc.begin_episodes(np.array([0]), self.obstacle_pos, self.obstacle_radius)
-
-    def __call__(self, t: float, pos: np.ndarray, vel: np.ndarray, present: np.ndarray) -> None:
-        with self._lock:
-            p = pos[None]
-            d = p[:, :, None, :] - p[:, None, :, :]
-            dist = np.sqrt((d * d).sum(-1))
-            # pursuer-team x evader pairs "touch" (a capture) within capture distance; same-team pairs on contact
-            reach = np.where(self.cross, self.capture_distance, self.radius[:, None] + self.radius[None, :])
-            contacts = (dist <= reach) & ~np.eye(len(pos), dtype=bool)
-            contacts &= present[None, :, None] & present[None, None, :]
-            od = np.linalg.norm(pos[:, None, :] - self.obstacle_pos[0][None], axis=-1)
-            obst = ((od <= self.obstacle_radius[0][None] + self.radius[:, None]).any(-1) & present)[None]
-            self.acc.update(p, contacts[None] if contacts.ndim == 2 else contacts, obst, dist)
-            self.steps += 1
-            self.trail.append((t, pos.copy(), present.copy()))
-            if self.steps % self.spec.timing.episode_steps == 0:
-                self.acc.end_episodes(np.array([0]))
-                self.acc.begin_episodes(np.array([0]), self.obstacle_pos, self.obstacle_radius)
-
-    def summary(self) -> dict[str, float]:
-        with self._lock:
-            if self.steps % self.spec.timing.episode_steps:
-                self.acc.end_episodes(np.array([0]))
-            return self.acc.summary()
-
-    def live(self) -> dict[str, float]:
-        """The metrics so far, the running episode included (left open), for the live view: every finished
-        episode and the running one weigh the same, as in ``summary``."""
-        with self._lock:  # a copy of a few numbers: the control thread's update waits microseconds at most
-            acc = self.acc
-            sums, steps = acc._sums[0].copy(), float(acc._sums[0, 5])
-            coverage = float((acc.visited[0] & acc.free[0]).sum() / acc.free_count[0]) if steps else None
-            records = list(acc.records)
-            captures = int(acc._captures[0]) + sum(r.captures for r in records)
-            n = self.steps
-        rows = [(r.min_dist, r.avg_dist, r.max_dist, r.tracking_rate, r.coverage) for r in records]
-        if steps:
-            m = sums / steps
-            rows.append((m[0], m[1], m[2], m[3], coverage))
-        out: dict[str, Any] = {"episodes": len(records), "steps": n, "captures": captures}
-        if rows:
-            avg = np.mean(np.array(rows, dtype=float), axis=0)
-            out.update({k: round(float(v), 4) for k, v in zip(("mean_min_dist", "mean_avg_dist", "mean_max_dist",
-                                                               "tracking_rate", "coverage"), avg)})
-            if steps:
-                out["coverage_instant"] = round(float(sums[4] / steps), 4)
-        return out
 
 
 # ---- the run -------------------------------------------------------------------------------------
@@ -405,16 +269,16 @@ def _run(opts, spec, manifest, flight_cfg, separation, obstacles, fence, anchors
                 _fly(opts, spec, session, sims, links, ids, obstacles, metrics, kill, result, pairs, recorder)
             except KeyboardInterrupt:
                 _wait_on_ground(sims, 4.0)
-                on_ground = sum(1 for tr in sims.truths() if _on_ground(tr))
+                on_ground = sum(1 for tr in sims.truths() if on_ground(tr))
                 raise DemoInterrupted({d: s.value for d, s in session.statuses().items()}, on_ground) from None
             # session exit landed everyone it can reach; a drone without a link comes down on its watchdog
             _wait_on_ground(sims, 4.0)
-            result.update(_results(opts, spec, session, sims, metrics, result.pop("pilot"), ids,
+            result.update(results(opts, spec, session, sims, metrics, result.pop("pilot"), ids,
                                    result.pop("sent0"), result.pop("sent1"), result.pop("t_mission"),
                                    result.pop("t_end"), t_start, t_connected, kill, result.pop("kill_link_at", None),
                                    relay))
             result["obstacles"] = [[round(float(v), 3) for v in o] for o in obstacles]
-            result.update(_separation_results(session, sims, pairs))
+            result.update(separation_results(session, sims, pairs))
             recorder({"t": round(time.monotonic() - session._t0, 4), "event": "drone_contacts", "drone": None,
                       "detail": f"{result['drone_contacts']} drone contacts in the simulator",
                       "count": result["drone_contacts"], "contacts": result["drone_contact_events"]})
@@ -471,207 +335,9 @@ def _fly(opts, spec, session: FlightSession, sims: "SimSwarm | SimProcess", link
     result.update(pilot=pilot, sent0=sent0, sent1=sent1, t_mission=t_mission, t_end=t_end)
 
 
-class PairMonitor:
-    """The closest two airborne simulated drones came (ground truth, centre to centre, 3-D) during the mission,
-    and how many times a pair came closer than ``min_distance`` or within ``contact`` (onsets)."""
-
-    def __init__(self, min_distance: float, contact: float) -> None:
-        self.min_distance, self.contact = min_distance, contact
-        self.closest = math.inf
-        self.below = 0
-        self.touching = 0
-        self.samples = 0
-        self._below: np.ndarray | None = None
-        self._touch: np.ndarray | None = None
-
-    def update(self, truths: list) -> None:
-        p = np.array([t.position for t in truths])
-        up = np.array([t.motors_on and t.position[2] > LANDED_Z for t in truths])
-        d = np.linalg.norm(p[:, None] - p[None], axis=-1)
-        pair = up[:, None] & up[None] & ~np.eye(len(p), dtype=bool)
-        below, touch = (d < self.min_distance) & pair, (d <= self.contact) & pair
-        if self._below is None:
-            self._below, self._touch = np.zeros_like(below), np.zeros_like(touch)
-        self.below += int((below & ~self._below).sum()) // 2
-        self.touching += int((touch & ~self._touch).sum()) // 2
-        self._below, self._touch = below, touch
-        if pair.any():
-            self.closest = min(self.closest, float(d[pair].min()))
-        self.samples += 1
-
-
-def _separation_results(session: FlightSession, sims: "SimSwarm | SimProcess", pairs: PairMonitor) -> dict:
-    return {
-        "separation": session.separation_stats(),
-        "drone_contacts": sims.drone_contacts,  # two drones that touched: both crashed (motors off, locked)
-        "drone_contact_events": [[round(float(t), 3), a, b] for t, a, b in sims.contact_events],
-        "min_pair_distance": round(pairs.closest, 4) if math.isfinite(pairs.closest) else None,
-        "pairs_below_min_distance": pairs.below,
-        "pairs_touching": pairs.touching,
-        "min_distance": session.separation_config.min_distance,
-        "capture_distance": session.separation_config.capture_distance,
-    }
-
-
-def _on_ground(truth) -> bool:
-    return truth.position[2] <= LANDED_Z and not truth.motors_on
-
-
 def _wait_on_ground(sims: "SimSwarm | SimProcess", timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if all(not tr.motors_on for tr in sims.truths()):
             return
         time.sleep(0.05)
-
-
-def _results(opts, spec, session: FlightSession, sims: "SimSwarm | SimProcess", metrics: EpisodeMetrics, pilot: AgentPilot,
-             ids, sent0, sent1, t_mission, t_end, t_start, t_connected, kill, kill_at, relay) -> dict[str, Any]:
-    truth = sims.truths()
-    landed = sum(1 for tr in truth if _on_ground(tr))
-    lat = np.array(session.latencies) * 1e3
-    e2e = np.array(sims.latency_samples()) * 1e3
-    span = max(t_end - t_mission, 1e-9)
-    per_link = {}
-    for d, a, b in zip(ids, sent0, sent1):
-        per_link[d] = {"packets_sent_per_s": round((b.packets_sent - a.packets_sent) / span, 1),
-                       "packets_received_per_s": round((b.packets_received - a.packets_received) / span, 1),
-                       "telemetry_per_s": round((b.telemetry_received - a.telemetry_received) / span, 1),
-                       "link_lost": b.link_lost}
-    sent = np.array([v["packets_sent_per_s"] for v in per_link.values()])
-    recv = np.array([v["packets_received_per_s"] for v in per_link.values()])
-    summary = metrics.summary()
-    events = [{"t": round(e.t - t_mission, 3), "drone": e.drone, "kind": e.kind, "detail": e.detail}
-              for e in session.events if e.kind not in ("status",)]
-    res: dict[str, Any] = {k: summary.get(k) for k in ("mean_min_dist", "mean_avg_dist", "mean_max_dist",
-                                                       "tracking_rate", "coverage", "coverage_instant",
-                                                       "collisions_per_episode", "captures_per_episode")}
-    t = spec.team
-    if (t.n_pursuers, t.n_scouts, t.n_evaders) == FLIGHT_TEAM:  # the paper's real-drone team: its figure beside
-        res["paper_flight_mean_avg_dist"] = PAPER["paper_flight"]["mean_avg_dist"]
-    res.update({
-        "episodes": summary.get("episodes", 0),
-        "landed": landed,
-        "locked": sum(1 for tr in truth if tr.supervisor == "locked"),
-        "drones": len(ids),
-        "geofence_violations": session.geofence_violations(),
-        "ground_station_stalls": session.stalls,
-        "setpoint_latency_p99_ms": float(np.percentile(e2e, 99)) if e2e.size else None,
-        "setpoint_latency_p50_ms": float(np.percentile(e2e, 50)) if e2e.size else None,
-        "setpoint_latency_samples": int(e2e.size),
-        "ground_station_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
-        "ground_station_latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
-        "setpoints": int(lat.size),
-        "mission_s": round(span, 2),
-        "connect_s": round(t_connected - t_start, 2),
-        "wall_s": round(time.monotonic() - t_start, 2),
-        "control_periods": pilot.ticks,
-        "agents": pilot.stats(),
-        "final_status": {d: s.value for d, s in session.statuses().items()},
-        "final_truth": {d: {"z": round(tr.position[2], 3), "motors_on": tr.motors_on, "supervisor": tr.supervisor}
-                        for d, tr in zip(ids, truth)},
-        "final_roles": session.assignment.by_drone,
-        "role_changes": [c.describe() for c in session.role_changes],
-        "events": events,
-        "links": {"per_drone": per_link,
-                  "mean_packets_sent_per_s": float(sent.mean()), "mean_packets_received_per_s": float(recv.mean()),
-                  "total_packets_per_s": float(sent.sum() + recv.sum()),
-                  "telemetry_period_ms": opts.telemetry_period_ms, "loss": opts.loss,
-                  "relay_dropped": relay.dropped if relay else 0},
-        "spec_hash": spec.hash,
-        "models": str(opts.models), "engine": opts.engine,
-        "seed": opts.seed,
-        "speed": opts.speed,
-        "duration": opts.duration,
-        "simulator": "in-process" if opts.sim_in_process else "own process",
-    })
-    if kill is not None:
-        lost = [e for e in session.events if e.kind == "link_lost" and e.drone == kill[0]]
-        cut = kill_at
-        res["kill_link"] = {"drone": kill[0], "at_s": kill[1], "cut": cut is not None,
-                            "detected_after_ms": round((lost[0].t - cut) * 1e3, 1) if lost and cut else None}
-    return res
-
-
-def plot_flight(path: str, rows: list[dict], fence: FenceConfig, anchors: AnchorLayout, ids: list[str],
-                teams: dict[str, str], result: dict[str, Any]) -> None:
-    """Top-down trajectories from the flight log on the arena, fence, keep-outs and anchors."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from groundstation.positioning import draw_layout
-
-    colors = {"pursuer": "tab:red", "scout": "tab:blue", "evader": "tab:green", None: "tab:gray"}  # as training.plots
-    fig, ax = plt.subplots(figsize=(7, 7))
-    draw_layout(ax, fence, anchors)
-    for d in ids:
-        pts = [(r["position"], r.get("role"), r["state"]) for r in rows
-               if r.get("drone") == d and "event" not in r and r.get("position") is not None
-               and r["state"] in ("flying", "holding", "landing", "lost", "taking_off")]
-        if not pts:
-            continue
-        xy = np.array([p[0][:2] for p in pts])
-        role = next((p[1] for p in reversed(pts) if p[1]), None)
-        ax.plot(xy[:, 0], xy[:, 1], "-", color=colors.get(role, "tab:gray"), linewidth=0.9, alpha=0.8)
-        ax.plot(xy[0, 0], xy[0, 1], "o", color=colors.get(role, "tab:gray"), markersize=4)
-        end = pts[-1][2]
-        ax.plot(xy[-1, 0], xy[-1, 1], "x" if end == "lost" else "s", color=colors.get(role, "tab:gray"),
-                markersize=6 if end == "lost" else 4)
-        ax.annotate(d, xy[-1], fontsize=6, xytext=(3, 3), textcoords="offset points")
-    for role, c in colors.items():
-        if role:
-            ax.plot([], [], "-", color=c, label=role)
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title(f"swarm-gs demo: {result.get('drones')} drones, {result.get('mission_s')} s, "
-                 f"landed {result.get('landed')}, fence violations {result.get('geofence_violations')}", fontsize=9)
-    ax.legend(loc="upper right", fontsize=7)
-    lo, hi = fence.bounds()
-    ax.set_xlim(lo[0] - 0.5, hi[0] + 0.5)
-    ax.set_ylim(lo[1] - 0.5, hi[1] + 0.5)
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=120, bbox_inches="tight")
-    plt.close(fig)
-
-
-def format_summary(res: dict[str, Any]) -> str:
-    """The printed report of a demo run."""
-    f = lambda v, d=3: "-" if v is None else (f"{v:.{d}f}" if isinstance(v, float) else str(v))  # noqa: E731
-    links = res["links"]
-    ag = res["agents"]
-    sep = res["separation"]
-    lines = [
-        f"mission {res['mission_s']} s, {res['episodes']} episode(s), {res['control_periods']} control periods; "
-        f"agents: {ag['actions']} actions, {ag['deadline_misses']} deadline misses, {ag['faults']} faults, tick to "
-        f"command p50 {f(ag['tick_to_command_p50_ms'], 2)} ms p99 {f(ag['tick_to_command_p99_ms'], 2)} ms",
-        f"distance to targets  min {f(res['mean_min_dist'])}  mean {f(res['mean_avg_dist'])}  "
-        f"max {f(res['mean_max_dist'])} m"
-        + (f"   (paper's real flight, 2 pursuers + 3 scouts vs 1 evader: mean {res['paper_flight_mean_avg_dist']} m)"
-           if "paper_flight_mean_avg_dist" in res else ""),
-        f"tracking rate {f(res['tracking_rate'])}   coverage {f(res['coverage'])}   "
-        f"collisions/episode {f(res['collisions_per_episode'], 2)}   captures/episode "
-        f"{f(res['captures_per_episode'], 2)} (within {f(res['capture_distance'], 2)} m)",
-        f"separation {'on' if res['separation']['enabled'] else 'OFF'} (min {f(res['min_distance'], 2)} m): drone "
-        f"contacts {f(res['drone_contacts'])}, closest pair {f(res['min_pair_distance'])} m, "
-        f"{res['pairs_below_min_distance']} times closer than min, {res['pairs_touching']} touching (truth)"
-        + (f"; changed {sep['changed_setpoints']} of {sep['setpoints']} setpoints, braked {sep['braked_setpoints']} "
-           f"({sep['unplaced_setpoints']} without a fresh position)" if sep["enabled"] else ""),
-        f"landed {res['landed']}/{res['drones']} ({res['locked']} locked)   geofence violations "
-        f"{res['geofence_violations']}   ground-station stalls {res['ground_station_stalls']}",
-        f"measurement-to-setpoint at the drone (through cflib and UDP) p50 {f(res['setpoint_latency_p50_ms'], 2)} ms "
-        f"p99 {f(res['setpoint_latency_p99_ms'], 2)} ms; in the ground station p50 "
-        f"{f(res['ground_station_latency_p50_ms'], 2)} ms p99 {f(res['ground_station_latency_p99_ms'], 2)} ms",
-        f"links: {f(links['mean_packets_sent_per_s'], 1)} packets/s sent and {f(links['mean_packets_received_per_s'], 1)} "
-        f"received per drone; {f(links['total_packets_per_s'], 0)} packets/s in all (telemetry every "
-        f"{links['telemetry_period_ms']} ms, loss {links['loss']}, {links['relay_dropped']} dropped)",
-    ]
-    for e in res["events"]:
-        if e["kind"] in ("link_lost", "low_battery", "agent_fault", "position_invalid", "fence_breach",
-                         "roles_reassigned", "abort", "emergency_stop", "dropped", "ground_station_stall"):
-            lines.append(f"  t={e['t']:+.2f} s {e['drone'] or '':>5} {e['kind']}: {e['detail']}")
-    if "kill_link" in res:
-        k = res["kill_link"]
-        lines.append(f"link of {k['drone']} cut at {k['at_s']} s: detected after {f(k['detected_after_ms'], 0)} ms")
-    return "\n".join(lines)

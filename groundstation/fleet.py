@@ -192,7 +192,7 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
 
 def _fly(fleet, flight, duration, log_path, stop, echo, separation, spec, manifest, fence, obstacles, teams,
          view) -> dict[str, Any]:
-    from groundstation.demo import EpisodeMetrics
+    from groundstation.demo_metrics import EpisodeMetrics
     from groundstation.liveview.server import scene
     from groundstation.mcap_log import open_recorder
     anchors = AnchorLayout.from_toml(fleet.anchors, fence=fence) if fleet.anchors else None

@@ -6,7 +6,7 @@ clock: each drone's latest state row at or before it, the events so far, the lat
 control, ``POST /api/replay`` with ``{"pause": bool, "seek": s, "speed": x}``, moves that clock; the page's
 replay bar sends it.
 
-``report`` recomputes the paper's metrics (``demo.EpisodeMetrics`` over ``runtime.metrics``) from the logged
+``report`` recomputes the paper's metrics (``demo_metrics.EpisodeMetrics`` over ``runtime.metrics``) from the logged
 positions: one step per record period (the flight log is written at the control rate, 10 Hz), agents in spec
 order at the position of the drone flying each actor. The team comes from the actors named in the log, the
 arena, sensing range and obstacles from its ``scene`` row.
@@ -196,7 +196,7 @@ def _final_states(state: list[dict], events: list[dict]) -> dict[str, str]:
 
 def report(rows: list[dict]) -> dict[str, Any]:
     """The paper's metrics recomputed from a log's positions, with what the log says about the flight."""
-    from groundstation.demo import EpisodeMetrics
+    from groundstation.demo_metrics import EpisodeMetrics
     scene, state, events, metrics_rows = _split(rows)
     if not state:
         raise LogError("the log has no drone rows: nothing to report")
@@ -255,8 +255,8 @@ def format_report(res: dict[str, Any]) -> str:
 
 
 def plot_log(path: str, rows: list[dict]) -> None:
-    """The demo's trajectory picture (``demo.plot_flight``) from a log with a scene row."""
-    from groundstation.demo import plot_flight
+    """The demo's trajectory picture (``demo_report.plot_flight``) from a log with a scene row."""
+    from groundstation.demo_report import plot_flight
     from groundstation.positioning import Anchor, AnchorLayout
     from groundstation.safety import FenceConfig, KeepOut
     scene, state, _, _ = _split(rows)
