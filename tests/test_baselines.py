@@ -1,3 +1,4 @@
+import dataclasses
 import itertools
 from pathlib import Path
 
@@ -78,6 +79,35 @@ def test_classical_actions_are_bounded_and_finite(team):
         assert a.shape == (4, spec.n_agents, 2)
         assert np.isfinite(a).all() and (np.abs(a) <= 1.0).all()
         obs, *_ = env.step(a)
+
+
+def test_the_classical_wall_reach_comes_from_the_spec_and_is_the_benchmark_s_value(role_based):
+    """The classical team is the fixed bar: its wall reach, now one drone diameter from the spec, is bit for bit
+    the 0.15 m it always flew with in the default and the paper configs, so every recorded figure of it stands;
+    a spec with bigger drones gets a wider reach."""
+    team = ClassicalPursuers()
+    assert team.wall_reach is None
+    for spec in (SwarmSpec(), role_based.spec):
+        assert team.wall_reach_for(spec) == 0.15  # exact: the old literal
+    default = SwarmSpec()
+    big = dataclasses.replace(default, pursuer=dataclasses.replace(default.pursuer, radius=0.09),
+                              scout=dataclasses.replace(default.scout, radius=0.08))
+    assert team.wall_reach_for(big) == pytest.approx(0.18)
+
+    class Literal(ClassicalPursuers):
+        wall_reach = 0.15  # the team as it was before the reach was derived
+
+    env = PursuitEnv(role_based.spec, n_envs=8, seed=4)
+    obs = env.reset()
+    old, new = TeamPolicy(Literal(), FleeingEvaders()), make_policy("classical")
+    walls = 0
+    for _ in range(60):
+        a = new.act(obs, env)
+        assert np.array_equal(a, old.act(obs, env))
+        hw = role_based.spec.arena.half_width
+        walls += int((np.abs(env.state.pos[:, :role_based.spec.team.n_team]) > hw - 0.3).any())
+        obs, *_ = env.step(a)
+    assert walls > 0  # the wall term was exercised
 
 
 def test_classical_beats_random_by_a_clear_margin(role_based):

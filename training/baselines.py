@@ -176,10 +176,11 @@ class ClassicalPursuers:
     """Distance from an obstacle's surface [m] where avoidance starts."""
     obstacle_repulsion = 0.5
     """Repulsion at an obstacle's surface [normalized action]."""
-    wall_reach = 0.15
-    """Distance from a wall [m] where outward motion is damped (pursuers follow evaders to the wall)."""
+    wall_reach: float | None = None
+    """Distance from a wall [m] where outward motion is damped (pursuers follow evaders to the wall). None: one
+    drone diameter, twice the team's largest radius from the spec (``wall_reach_for``; 0.15 m by default)."""
     separation_reach = 0.5
-    """Centre distance [m] under which teammates push apart (contact is at 0.15 m)."""
+    """Centre distance [m] under which teammates push apart (contact is at R_i + R_j, 0.15 m by default)."""
     separation_gain = 3.0
     """Teammate push at zero distance [normalized action]."""
     lloyd_gain = 2.0
@@ -206,9 +207,15 @@ class ClassicalPursuers:
         v = wish + separation(team_pos, team_pos, self.separation_reach, self.separation_gain)
         v = avoid_obstacles(team_pos, v, radius[:nt], s.obstacle_pos, s.obstacle_radius,
                             self.obstacle_reach, self.obstacle_repulsion)
-        v = wall_field(team_pos, v, radius[:nt], hw, self.wall_reach, 0.0)
+        v = wall_field(team_pos, v, radius[:nt], hw, self.wall_reach_for(spec), 0.0)
         out[:, :nt] = _clip_norm(v)
         return out
+
+    def wall_reach_for(self, spec: SwarmSpec) -> float:
+        """``wall_reach`` [m], or when it is None one drone diameter of ``spec``'s pursuer team."""
+        if self.wall_reach is not None:
+            return self.wall_reach
+        return 2.0 * max(spec.per_agent("radius")[:spec.team.n_team])
 
     def _pursue(self, spec: SwarmSpec, pp: np.ndarray, ep: np.ndarray, ev: np.ndarray) -> np.ndarray:
         """Unit velocity wishes ``[B, P, 2]`` of the pursuers toward their assigned evaders, led."""
