@@ -225,6 +225,7 @@ def _check_demo(args: argparse.Namespace) -> None:
     """Every input of ``swarm-gs demo`` read and checked before a simulator starts, so that a wrong value is one
     line naming its option rather than an error after a 30 s flight (``run_demo`` reads them again)."""
     from groundstation.flight import FlightConfig
+    from groundstation.fence import check_arena
     from groundstation.positioning import AnchorLayout
     from groundstation.safety import FenceConfig
     from groundstation.separation import SeparationConfig
@@ -255,7 +256,11 @@ def _check_demo(args: argparse.Namespace) -> None:
         _input("--flight-config", args.flight_config, FlightConfig.from_toml, ("flight", "separation"))
         _input("--flight-config", args.flight_config,
                lambda p: SeparationConfig.from_dict(load_toml(p).get("separation", {})))
-    fence = _input("--fence", args.fence, FenceConfig.from_toml, ("fence",))
+    fence = _input("--fence", args.fence, lambda p: FenceConfig.from_toml(p, spec=manifest.spec), ("fence",))
+    try:
+        check_arena(fence, manifest.spec, f"--fence {args.fence}", f"the models in {args.models}")
+    except SpecError as exc:
+        raise UsageError(str(exc)) from None
     _input("--anchors", args.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence), ("lps",))
     if args.base_port is not None:
         _check_port_range("--base-port", args.base_port, spec.n_agents)
@@ -301,6 +306,7 @@ def _load_fleet(path: str, flying: bool = False):
     """The fleet file's fleet and flight tables, checked before any radio opens; with ``flying`` also the
     separation table and every file it names (models, spec, fence, anchors), which ``fly`` reads again.
     A wrong one is a ``UsageError`` naming ``--fleet`` and the key."""
+    from groundstation.fence import check_arena
     from groundstation.fleet import FleetConfig, load_separation, obstacles_from_fence
     from groundstation.positioning import AnchorLayout
     from groundstation.safety import FenceConfig
@@ -321,7 +327,11 @@ def _load_fleet(path: str, flying: bool = False):
         raise UsageError(f"{where}.spec: spec {spec.hash} ({fleet.spec or 'the default spec'}), but the models in "
                          f"{fleet.models} were exported for spec {manifest.spec.hash}: set fleet.spec to the spec "
                          f"they were trained on")
-    fence = _input(f"{where}.fence", fleet.fence, FenceConfig.from_toml, ("fence",))
+    fence = _input(f"{where}.fence", fleet.fence, lambda p: FenceConfig.from_toml(p, spec=manifest.spec), ("fence",))
+    try:
+        check_arena(fence, manifest.spec, f"{where}.fence {fleet.fence}", f"the models in {fleet.models}")
+    except SpecError as exc:
+        raise UsageError(str(exc)) from None
     if fleet.anchors:
         _input(f"{where}.anchors", fleet.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence), ("lps",))
     try:

@@ -42,6 +42,7 @@ import numpy as np
 
 from groundstation.demo_metrics import LANDED_Z, EpisodeMetrics, PairMonitor, on_ground
 from groundstation.demo_report import format_summary, plot_flight, results, separation_results
+from groundstation.fence import FenceArenaMismatch, check_arena
 from groundstation.flight import FlightConfig, FlightSession, close_links
 from groundstation.link import LinkError, open_link
 from groundstation.mission import AgentPilot
@@ -211,8 +212,12 @@ def run_demo(opts: DemoOptions, echo: Callable[[str], None] | None = None, view=
         else SeparationConfig()
     separation = dataclasses.replace(separation, enabled=separation.enabled and opts.separation)
     obstacles = draw_obstacles(spec, opts.seed)
-    fence = dataclasses.replace(FenceConfig.from_toml(opts.fence),
-                                keep_out=tuple(KeepOut(float(x), float(y), float(r)) for x, y, r in obstacles))
+    fence = FenceConfig.from_toml(opts.fence, spec=manifest.spec)
+    try:  # before any simulator starts
+        check_arena(fence, manifest.spec, f"fence {opts.fence}", f"the models in {opts.models}")
+    except FenceArenaMismatch as exc:
+        raise DemoError(str(exc)) from None
+    fence = dataclasses.replace(fence, keep_out=tuple(KeepOut(float(x), float(y), float(r)) for x, y, r in obstacles))
     anchors = AnchorLayout.from_toml(opts.anchors, fence=fence)
     n = spec.n_agents
     ids = [f"cf{i}" for i in range(n)]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -52,12 +52,20 @@ class KeepOut:
             raise SpecError(f"radius: must be > 0 and finite, got {self.radius!r}")
 
 
+def arena_box(spec: SwarmSpec | None = None) -> tuple[float, float, float, float]:
+    """The square arena of ``spec`` (default: ``SwarmSpec()``) as a fence box ``(x_min, x_max, y_min, y_max)`` [m]."""
+    hw = (spec if spec is not None else SwarmSpec()).arena.half_width
+    return (-hw, hw, -hw, hw)
+
+
 @dataclass(frozen=True)
 class FenceConfig:
     """The geofence. Build it from TOML with ``FenceConfig.from_toml`` or from the arena with ``from_spec``."""
 
-    box: tuple[float, ...] = (-3.0, 3.0, -3.0, 3.0)
-    """Horizontal box ``[x_min, x_max, y_min, y_max]`` [m]; used when ``vertices`` is empty."""
+    box: tuple[float, ...] = field(default_factory=lambda: arena_box())
+    """Horizontal box ``[x_min, x_max, y_min, y_max]`` [m]; used when ``vertices`` is empty. Default: the arena
+    of the default spec (``arena_box``); ``from_toml(..., spec=...)`` gives a file without ``box`` and
+    ``vertices`` the arena of that spec."""
     vertices: tuple[tuple[float, ...], ...] = ()
     """Corners ``[[x, y], ...]`` [m] of a convex horizontal polygon, in either winding order. When given it
     replaces ``box``."""
@@ -108,20 +116,23 @@ class FenceConfig:
         return from_mapping(cls, data, where)
 
     @classmethod
-    def from_toml(cls, path: str | Path, table: str | None = "fence") -> "FenceConfig":
+    def from_toml(cls, path: str | Path, table: str | None = "fence", spec: SwarmSpec | None = None) -> "FenceConfig":
+        """The ``[table]`` of the TOML file; with ``spec``, a table without ``box`` and ``vertices`` fences
+        that spec's arena."""
         data = load_toml(path)
         if table is not None:
             data = data.get(table, {})
+        if spec is not None and isinstance(data, dict) and "box" not in data and "vertices" not in data:
+            data = {**data, "box": list(arena_box(spec))}
         return cls.from_dict(data, where=table or "fence")
 
     @classmethod
     def from_spec(cls, spec: SwarmSpec, obstacles: np.ndarray | Sequence[Sequence[float]] | None = None,
                   **overrides: object) -> "FenceConfig":
         """The arena of ``spec`` as a box fence; ``obstacles`` rows ``(x, y, radius)`` [m] become keep-outs."""
-        hw = spec.arena.half_width
         keep = tuple(KeepOut(float(o[0]), float(o[1]), float(o[2])) for o in (obstacles if obstacles is not None
                                                                             else ()))
-        kwargs: dict = {"box": (-hw, hw, -hw, hw), "keep_out": keep}
+        kwargs: dict = {"box": arena_box(spec), "keep_out": keep}
         kwargs.update(overrides)
         return cls(**kwargs)
 
@@ -407,3 +418,38 @@ def clamp_position(fence: FenceConfig, p: Sequence[float] | np.ndarray | None,
     if xy is None:  # unreachable: the fence refuses configs without a safe set
         return fence.home
     return np.array([xy[0], xy[1], min(max(a[2], g.z_lo), g.z_hi)])
+
+
+# --------------------------------------------------------------------------------------------------
+# the fence against the arena the models were trained in
+
+
+class FenceArenaMismatch(SpecError):
+    """The fence does not contain the arena the models were trained in (to within its margin)."""
+
+
+def arena_cut(fence: FenceConfig, spec: SwarmSpec) -> float:
+    """How deep [m] the fence cuts into ``spec``'s arena: the largest distance by which a corner of the arena
+    square lies beyond one of the fence's edges (0 when the fence contains the arena)."""
+    g = geometry(fence)
+    x0, x1, y0, y1 = arena_box(spec)
+    corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    return max(0.0, float((corners @ g.normals.T - g.offsets[None]).max()))
+
+
+def check_arena(fence: FenceConfig, spec: SwarmSpec, fence_name: str = "the fence",
+                models_name: str = "the models") -> None:
+    """Raise ``FenceArenaMismatch`` naming both when ``fence`` cuts the arena that ``spec`` (the models' spec)
+    trained in by more than its margin: the policies would steer at walls the geofence holds them off, or the
+    fence would be drawn for another area. A fence may be smaller by up to its margin (the default fence is
+    the arena itself: its safe set is the arena shrunk by the margin)."""
+    cut = arena_cut(fence, spec)
+    if cut <= fence.margin + TOL:
+        return
+    hw = spec.arena.half_width
+    shape = (f"box {[round(v, 3) for v in fence.box]}" if not fence.vertices
+             else f"polygon {[[round(c, 3) for c in v] for v in fence.vertices]}")
+    raise FenceArenaMismatch(
+        f"{fence_name}: the fence ({shape} m, margin {fence.margin} m) cuts {cut:.2f} m into the arena "
+        f"{models_name} were trained in ([{-hw}, {hw}]^2 m, spec {spec.hash}), more than its margin: make the "
+        f"fence cover that arena to within {fence.margin} m, or fly models trained for this fence's area")

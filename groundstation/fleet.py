@@ -21,6 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from groundstation.fence import check_arena
 from groundstation.flight import FlightConfig, FlightSession, close_links
 from groundstation.link import FlightState, Link, LinkError, open_link
 from groundstation.mission import AgentPilot
@@ -172,7 +173,8 @@ def fly(fleet: FleetConfig, flight: FlightConfig, duration: float, log_path: str
     echo = echo or (lambda line: log.info("%s", line))
     spec = SwarmSpec.from_toml(fleet.spec) if fleet.spec else SwarmSpec()
     manifest = read_manifest(fleet.models)
-    fence = FenceConfig.from_toml(fleet.fence)
+    fence = FenceConfig.from_toml(fleet.fence, spec=manifest.spec)
+    check_arena(fence, manifest.spec, f"fleet.fence {fleet.fence}", f"the models in {fleet.models}")
     if fleet.anchors:
         AnchorLayout.from_toml(fleet.anchors, fence=fence)
     obstacles = obstacles_from_fence(fence, spec)

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from groundstation.cf_firmware import LIPO_CHARGE_CURVE_V, lipo_state_of_charge
-from runtime.spec import SpecError, from_mapping, load_toml
+from runtime.spec import SpecError, SwarmSpec, from_mapping, load_toml
 
 if TYPE_CHECKING:  # only for annotations: positioning works with any link that publishes telemetry
     from matplotlib.axes import Axes
@@ -215,9 +215,12 @@ class Anchor:
             raise SpecError(f"id: must be in 0..255, got {self.id}")
 
 
-def paper_anchors(half_width: float = 3.0, low: float = 0.15, high: float = 2.3) -> tuple[Anchor, ...]:
-    """The paper's layout: a stand on each corner of the square ``[-half_width, half_width]^2`` [m], one
-    anchor ``low`` and one ``high`` [m] on each (the heights are not in the paper; these are examples)."""
+def paper_anchors(half_width: float | None = None, low: float = 0.15, high: float = 2.3) -> tuple[Anchor, ...]:
+    """The paper's layout: a stand on each corner of the square ``[-half_width, half_width]^2`` [m] (None: the
+    default spec's arena), one anchor ``low`` and one ``high`` [m] on each (the heights are not in the paper;
+    these are examples)."""
+    if half_width is None:
+        half_width = SwarmSpec().arena.half_width
     corners = (("south-west", -1, -1), ("south-east", 1, -1), ("north-east", 1, 1), ("north-west", -1, 1))
     return tuple(Anchor(2 * k + j, (sx * half_width, sy * half_width, z), name)
                  for k, (name, sx, sy) in enumerate(corners) for j, z in enumerate((low, high)))

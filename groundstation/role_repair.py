@@ -32,13 +32,18 @@ class RoleRepair(SessionCore):
         """Initial role assignment over the drones that passed preflight (by battery and distance)."""
         with self._lock:
             infos = self._drone_infos(for_takeoff=True)
-            self.assignment = roles_mod.assign_roles(self.actors, infos)
+            self.assignment = roles_mod.assign_roles(self.actors, infos, distance_scale=self._distance_scale())
             now = time.monotonic()
             for d in self.drones.values():
                 d.actor_since = now
             self._event(None, "roles_assigned", "", {"by_drone": self.assignment.by_drone})
         self._notify_roles()
         return self.assignment
+
+    def _distance_scale(self) -> float:
+        """What the role cost divides distances by: the flight area's side, the fence's wider extent [m]."""
+        lo, hi = self.fence.bounds()
+        return float(max(hi[0] - lo[0], hi[1] - lo[1]))
 
     def _drone_infos(self, for_takeoff: bool = False) -> list[roles_mod.DroneInfo]:
         out = []
@@ -62,7 +67,8 @@ class RoleRepair(SessionCore):
             n_evaders = sum(1 for a, d in current.by_actor.items()
                             if role[a] is Role.EVADER and self.drones[d].status in AIRBORNE)
             new, changes = roles_mod.reassign(current, self._drone_infos(), n_evaders,
-                                              low_battery=battery_fraction(self.config.low_battery_v))
+                                              low_battery=battery_fraction(self.config.low_battery_v),
+                                              distance_scale=self._distance_scale())
             now = time.monotonic()
             before = self.assignment.by_drone
             for did, actor in new.by_drone.items():

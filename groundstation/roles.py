@@ -14,7 +14,7 @@ Initial cost (minimised with the Hungarian method, ``scipy.optimize.linear_sum_a
 - pursuer actors come first: each carries a bonus of ``-PRIORITY`` so that when there are fewer drones than
   actors, pursuers are the ones flown (the paper's assumption (a): at least one pursuer per evader);
 - a pursuer actor on drone ``d`` costs ``-battery_d * W_BATTERY + dist(d, nearest evader drone) * W_DISTANCE``
-  (normalised by ``distance_scale``): the fullest batteries and the drones nearest the evaders chase;
+  (normalised by ``distance_scale``, by default the side of the spec's arena): the fullest batteries and the drones nearest the evaders chase;
   scouts cost nothing, so they get the rest (the emptiest batteries, the ones far away);
 - ties break by drone and actor order, so the result is deterministic.
 
@@ -33,7 +33,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from runtime.spec import Role, SpecError
+from runtime.spec import Role, SpecError, SwarmSpec
 
 log = logging.getLogger(__name__)
 
@@ -160,14 +160,21 @@ def _pursuit_cost(d: DroneInfo, evader_xy: np.ndarray, distance_scale: float) ->
     return cost
 
 
+def arena_side() -> float:
+    """The side [m] of the default spec's square arena (``runtime.spec``)."""
+    return 2.0 * SwarmSpec().arena.half_width
+
+
 def _evader_positions(drones: Sequence[DroneInfo], low_battery: float) -> np.ndarray:
     return np.array([_xy(d) for d in drones if d.team == EVADER_TEAM and _usable(d, low_battery)]).reshape(-1, 2)
 
 
 def assign_roles(manifest_agents: Iterable[Mapping[str, Any] | Actor], drones: Sequence[DroneInfo], *,
-                 low_battery: float = 0.2, distance_scale: float = 6.0) -> Assignment:
+                 low_battery: float = 0.2, distance_scale: float | None = None) -> Assignment:
     """Initial assignment of the manifest's actors to the usable drones (available, battery >= ``low_battery``)
-    by the cost in the module docstring. ``distance_scale`` [m] normalises distances (the arena's side)."""
+    by the cost in the module docstring. ``distance_scale`` [m] normalises distances (None: the side of the
+    default spec's arena; the flight session passes its fence's)."""
+    distance_scale = arena_side() if distance_scale is None else distance_scale
     actors = parse_actors(manifest_agents)
     _check_drones(drones)
     evader_xy = _evader_positions(drones, low_battery)
@@ -193,10 +200,12 @@ def assign_roles(manifest_agents: Iterable[Mapping[str, Any] | Actor], drones: S
 
 
 def reassign(assignment: Assignment, drones: Sequence[DroneInfo], n_evaders: int, *, low_battery: float = 0.2,
-             distance_scale: float = 6.0) -> tuple[Assignment, list[RoleChange]]:
+             distance_scale: float | None = None) -> tuple[Assignment, list[RoleChange]]:
     """Repair ``assignment`` after dropouts and low batteries (see the module docstring). ``n_evaders`` is the
     number of evaders in play; with at least that many usable pursuer-team drones (and pursuer actors) the
-    result flies at least ``n_evaders`` pursuers. Returns the new assignment and the changes, all logged."""
+    result flies at least ``n_evaders`` pursuers. Returns the new assignment and the changes, all logged.
+    ``distance_scale`` as in ``assign_roles``."""
+    distance_scale = arena_side() if distance_scale is None else distance_scale
     _check_drones(drones)
     info = {d.id: d for d in drones}
     by_actor = dict(assignment.by_actor)

@@ -30,6 +30,7 @@ def paths(tmp_path, monkeypatch):
     (tmp_path / "bad.toml").write_text("not = [toml\n")
     (tmp_path / "bin.toml").write_bytes(b"\xff\xfe[spec]\n")
     (tmp_path / "fence_key.toml").write_text("[fence]\nmarginn = 0.1\n")
+    (tmp_path / "fence_small.toml").write_text("[fence]\nbox = [-2.5, 2.5, -2.5, 2.5]\nmargin = 0.2\n")
     (tmp_path / "sep_key.toml").write_text("[separation]\nmin_dist = 0.5\n")
     (tmp_path / "train_key.toml").write_text("[train]\nstepz = 5\n")
     (tmp_path / "train_seed.toml").write_text("[train]\nseed = -1\n")
@@ -37,12 +38,16 @@ def paths(tmp_path, monkeypatch):
     (tmp_path / "fleet_models.toml").write_text(
         f'[fleet]\nmodels = "{tmp_path / "adir"}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
         '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
+    (tmp_path / "fleet_fence.toml").write_text(
+        f'[fleet]\nmodels = "{MODELS}"\nfence = "{tmp_path / "fence_small.toml"}"\n'
+        '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
     (tmp_path / "fleet_spec.toml").write_text(
         f'[fleet]\nmodels = "{MODELS}"\nspec = "{OTHER_SPEC}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
         '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
     return {"FILE": str(tmp_path / "afile"), "DIR": str(tmp_path / "adir"), "BAD": str(tmp_path / "bad.toml"),
             "NONE": str(tmp_path / "none"), "TMP": str(tmp_path), "BINTOML": str(tmp_path / "bin.toml"),
             "FENCEKEY": str(tmp_path / "fence_key.toml"), "SEPKEY": str(tmp_path / "sep_key.toml"),
+            "FENCESMALL": str(tmp_path / "fence_small.toml"), "FLEETFENCE": str(tmp_path / "fleet_fence.toml"),
             "TRAINKEY": str(tmp_path / "train_key.toml"), "TRAINSEED": str(tmp_path / "train_seed.toml"),
             "FLEETKEY": str(tmp_path / "fleet_key.toml"),
             "FLEETMODELS": str(tmp_path / "fleet_models.toml"), "FLEETSPEC": str(tmp_path / "fleet_spec.toml")}
@@ -160,6 +165,9 @@ CASES = [
     ("groundstation.cli", "demo --models M --engine gpu", ["--engine", "'gpu'"], None),
     ("groundstation.cli", "demo --models M --fence NONE", ["--fence", "NONE", "does not exist"], None),
     ("groundstation.cli", "demo --models M --fence FENCEKEY", ["--fence", "fence.marginn", "valid keys"], None),
+    ("groundstation.cli", "demo --models M --fence FENCESMALL", ["--fence FENCESMALL", "cuts 0.50 m into the arena",
+                                                                 f"the models in {MODELS}", "[-3.0, 3.0]^2", "margin 0.2"],
+     None),
     ("groundstation.cli", "demo --models M --anchors BAD", ["--anchors", "not valid TOML"], None),
     ("groundstation.cli", "demo --models M --flight-config SEPKEY", ["--flight-config", "separation.min_dist",
                                                                      "valid keys"], None),
@@ -177,6 +185,8 @@ CASES = [
     ("groundstation.cli", "fly --fleet FLEETKEY", ["--fleet", "fleet.telemetry_period", "valid keys"], None),
     ("groundstation.cli", "fly --fleet FLEETMODELS", ["--fleet", "fleet.models", "manifest.json"], None),
     ("groundstation.cli", "fly --fleet FLEETSPEC", ["--fleet", "fleet.spec", "exported for spec"], None),
+    ("groundstation.cli", "fly --fleet FLEETFENCE", ["--fleet", "fleet.fence FENCESMALL", "cuts 0.50 m into the arena",
+                                                     f"the models in {MODELS}"], None),
     ("groundstation.cli", "fly --fleet BAD --log FILE/f.jsonl", ["--log", "is a file"], "FILE/f.jsonl"),
     ("groundstation.cli", "status --fleet DIR", ["--fleet", "is a folder"], None),
     ("groundstation.cli", "land --fleet BAD", ["--fleet", "not valid TOML"], None),
