@@ -56,6 +56,7 @@ from numba import njit
 from runtime.comms import Neighbours, Radio
 from runtime.observation import SIGHTING, OneObserverEncoder, encode_observations
 from runtime.spec import Role, SpecError, SwarmSpec
+from runtime.world import action_to_velocity
 
 log = logging.getLogger(__name__)
 
@@ -270,6 +271,7 @@ class Agent:
         self.velocity = np.zeros(2)
         self._safe = np.zeros(2)
         self.max_speed = spec.role(self.role).max_speed
+        self._max_speed = np.array([self.max_speed])
         self._epoch = 0  # the buffers start clean for episode 0
         self._ready = self._have_state = False
         self._t_state_read = 0.0
@@ -355,12 +357,7 @@ class Agent:
             self.policy.act(self.obs, out=self.action)
             if self.policy.faults != faults:
                 self._fault(f"policy: {self.policy.last_fault}")
-            a = self.action
-            v[0] = a[0] * self.max_speed
-            v[1] = a[1] * self.max_speed
-            sp = math.hypot(v[0], v[1])
-            if sp > self.max_speed:
-                v *= self.max_speed / sp
+            action_to_velocity(self._max_speed, self.action[None], out=v[None])
             st.actions += 1
         else:
             v[:] = 0.0

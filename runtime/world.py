@@ -4,7 +4,7 @@ Every array is ``[n_envs, ...]``; training steps thousands of environments at on
 one (``n_envs = 1``) through exactly the same code.
 
 Dynamics are those of a position-controlled drone flown by velocity commands: the commanded velocity
-(action x the role's ``max_speed``, norm-limited) is tracked with an acceleration limit, then the position is
+(``action_to_velocity``: action x the role's ``max_speed``, norm-limited) is tracked with an acceleration limit, then the position is
 integrated. Walls and circular obstacles are solid: an agent that would end inside one is put back on its
 surface and loses the velocity component pointing into it, so nobody passes through. Agent-agent contacts
 are detected (for rewards and metrics) but not resolved: real drones must avoid them, not bounce.
@@ -14,10 +14,42 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from runtime.spec import SwarmSpec
 
 _PLACEMENT_TRIES = 64
+
+
+def action_to_velocity(max_speed: np.ndarray, actions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """What an action means (the spec's action layout): the commanded velocity [m/s, world frame] of normalised
+    actions ``[..., N, 2]`` (batch-first; values in [-1, 1]) for agents of max speeds ``max_speed [N]`` [m/s]
+    (``spec.per_agent("max_speed")``, or one role's ``[max_speed]`` for one drone's ``[1, 2]``): each action
+    times its agent's max speed, the vector's norm limited to that max speed. The one definition, used by the
+    world (training, evaluation, the simulators) and by each drone's runtime; ``out`` (float64, the shape of
+    ``actions``, C-contiguous) is written and returned."""
+    if out is None:
+        out = np.empty(np.shape(actions))
+    _velocity_kernel(actions.reshape(-1, 2), max_speed, out.reshape(-1, 2))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _velocity_kernel(actions, max_speed, out):
+    """Row ``r`` of ``actions [R, 2]`` is agent ``r % N``'s (``max_speed [N]``). Plain IEEE arithmetic (no
+    fastmath), in the order numpy would use, so vectorised and per-drone callers agree to the bit."""
+    n = max_speed.shape[0]
+    for r in range(actions.shape[0]):
+        ms = max_speed[r % n]
+        vx = actions[r, 0] * ms
+        vy = actions[r, 1] * ms
+        speed = np.sqrt(vx * vx + vy * vy)
+        if speed > ms:
+            s = ms / max(speed, 1e-12)
+            vx *= s
+            vy *= s
+        out[r, 0] = vx
+        out[r, 1] = vy
 
 
 @dataclass
@@ -169,11 +201,7 @@ class World:
         a = self.sanitize_actions(actions)
         s = self.state
         dt = self.dt
-        vcmd = a * self.max_speed[None, :, None]
-        speed = np.sqrt((vcmd * vcmd).sum(-1))
-        over = speed > self.max_speed[None, :]
-        if over.any():
-            vcmd *= np.where(over, self.max_speed[None, :] / np.maximum(speed, 1e-12), 1.0)[..., None]
+        vcmd = action_to_velocity(self.max_speed, a)
         dv = vcmd - s.vel
         dvn = np.sqrt((dv * dv).sum(-1))
         lim = self.max_accel[None, :] * dt

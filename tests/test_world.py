@@ -126,3 +126,28 @@ def test_contacts_detected():
     w.state.pos[0, 10] = w.state.pos[0, 0] + [0.075 + 0.05, 0.0]  # evader exactly touching pursuer 0
     c = w.contacts()
     assert c[0, 0, 10] and c[0, 10, 0] and c.sum() == 2
+
+
+def test_one_action_to_velocity_for_the_world_and_each_drone():
+    """The world's batch and a drone's runtime (one agent, ``[1, 2]``) turn an action into the same velocity, to
+    the bit: action x max speed, the norm limited to the max speed."""
+    from runtime.world import action_to_velocity
+    spec = SwarmSpec()
+    ms = np.array(spec.per_agent("max_speed"))
+    rng = np.random.default_rng(2)
+    a = rng.uniform(-1, 1, (64, spec.n_agents, 2))
+    a[:, :, :] = np.where(rng.random((64, spec.n_agents, 1)) < 0.3, np.sign(a), a)  # corners: over the limit
+    a32 = a.astype(np.float32)  # a policy's output
+    a = a32.astype(np.float64)
+    v = action_to_velocity(ms, a)
+    speed = np.linalg.norm(v, axis=-1)
+    assert (speed <= ms[None] * (1 + 1e-15)).all()
+    inside = np.linalg.norm(a, axis=-1) <= 1.0
+    assert np.array_equal(v[inside], (a * ms[None, :, None])[inside])
+    over = ~inside
+    assert over.any() and np.allclose(speed[over], np.broadcast_to(ms, speed.shape)[over], rtol=1e-15)
+    one = np.zeros((1, 2))
+    for b in range(0, 64, 7):
+        for i in range(spec.n_agents):
+            action_to_velocity(np.array([ms[i]]), a32[b, i][None], out=one)  # as runtime.agent calls it
+            assert np.array_equal(one[0], v[b, i])
