@@ -71,8 +71,9 @@ COINCIDENT = 1e-6
 VERIFY_TOL = 1e-6
 """Slack [m] of the final constraint check: the solver's accuracy on constraints that are tight at zero (a
 micrometre over the whole horizon, against the 0.2 m that ``POSITION_ERROR`` keeps)."""
-QP_MARGIN = 1e-6
-"""The QP's constraints are tightened by this [m], so that OSQP's tolerance cannot end outside them."""
+QP_MARGIN = 1e-5
+"""The QP's constraints with room for it are tightened by this [m] (10 um over the horizon), so that OSQP's
+tolerance (``QP_EPS``) does not end outside them."""
 _OCTAGON = np.array([[math.cos(k * math.pi / 4), math.sin(k * math.pi / 4)] for k in range(8)])
 _APOTHEM = math.cos(math.pi / 8)
 """An octagon with apothem ``s cos(pi/8)`` lies inside the circle of radius ``s``."""
@@ -215,40 +216,61 @@ def _pairs(pos, vel, prev, s, active, lim: Limits) -> tuple[_Pairs, np.ndarray]:
     return _Pairs(i, j, n, gap, k_i, k_j, tier), bad
 
 
-def _rows(pp: _Pairs, hl: np.ndarray, free: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Linear constraints ``A x <= b`` on the free drones' commands ``x = [u_0x, u_0y, u_1x, ...]``."""
-    m = int(free.sum())
-    fi, fj = free[pp.i], free[pp.j]
-    normal, stop = pp.tier == NORMAL, pp.tier == NO_CLOSING
-    ci, cj = -hl[pp.i][:, None] * pp.n, hl[pp.j][:, None] * pp.n  # Hl_i(-n.u_i), Hl_j(n.u_j) as coefficients
-    blocks_a, blocks_b = [], []
+@dataclass
+class _Rows:
+    """Linear constraints ``A x <= b`` on the free drones' commands ``x = [u_0x, u_0y, u_1x, ...]``, as the
+    nonzeros of ``A`` (row, column, value): at most four per row, built without a dense matrix."""
 
-    def add(sel: np.ndarray, coef_i: np.ndarray | None, coef_j: np.ndarray | None, rhs: np.ndarray) -> None:
-        k = int(sel.sum())
-        if not k:
-            return
-        a = np.zeros((k, 2 * m))
-        r = np.arange(k)[:, None]
-        for idx, coef in ((pp.i, coef_i), (pp.j, coef_j)):
-            if coef is not None:
-                a[r, 2 * col[idx[sel]][:, None] + np.array([0, 1])] = coef[sel]
-        blocks_a.append(a)
-        blocks_b.append(np.broadcast_to(rhs, sel.shape)[sel])
+    row: np.ndarray
+    col: np.ndarray
+    val: np.ndarray
+    b: np.ndarray
 
-    add(normal & fi & fj, ci, cj, pp.gap)
-    add(normal & fi, ci, None, pp.gap - hl[pp.j] * pp.k_j)
-    add(normal & fj, None, cj, pp.gap - hl[pp.i] * pp.k_i)
-    add(stop & fi, -pp.n, None, np.zeros(len(pp.i)))  # too close, or no slack for the margin: stop closing
-    add(stop & fj, None, pp.n, np.zeros(len(pp.i)))
-    if not blocks_a:
-        return np.zeros((0, 2 * m)), np.zeros(0)
-    return np.vstack(blocks_a), np.concatenate(blocks_b)
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        """``A x - b`` for the flat command vector ``x``."""
+        return np.bincount(self.row, self.val * x[self.col], minlength=len(self.b)) - self.b
 
 
-def _violation(a: np.ndarray, b: np.ndarray, u: np.ndarray, free_idx: np.ndarray) -> float:
-    if not len(b):
+def _rows(pp: _Pairs, hl: np.ndarray, free: np.ndarray, col: np.ndarray, pos: np.ndarray) -> _Rows:
+    """The constraints of the module docstring on the free drones' commands (see ``_Rows``), in a layout that
+    depends on nothing but which drones are free: every pair with a free drone has its rows (both free: the
+    joint row and one per drone; one free: that drone's row), and a row that does not bind now (a pair too far
+    apart to matter, or the joint row of a pair that may only stop closing in) has ``b = inf``. So from one
+    setpoint period to the next only numbers change, and ``QPSolver`` updates and warm-starts OSQP instead of
+    setting it up anew. Coefficients are ``H_i(-n.u_i)`` and ``H_j(n.u_j)`` with the horizons of the commands."""
+    i, j = np.triu_indices(len(free), 1)
+    keep = free[i] | free[j]
+    i, j = i[keep], j[keep]
+    fi, fj = free[i], free[j]
+    delta = pos[i, :2] - pos[j, :2]
+    n = delta / np.maximum(np.hypot(delta[:, 0], delta[:, 1]), COINCIDENT)[:, None]  # coincident ones are not free
+    ci, cj = -hl[i][:, None] * n, hl[j][:, None] * n
+    b = np.full((len(i), 3), np.inf)  # joint row, row of i, row of j
+    where = np.full((len(free), len(free)), -1)
+    where[i, j] = np.arange(len(i))
+    q = where[pp.i, pp.j]  # pairs of pp without a free drone (braked ones) have no rows
+    normal, stop = (pp.tier == NORMAL) & (q >= 0), (pp.tier == NO_CLOSING) & (q >= 0)
+    b[q[normal], 0] = pp.gap[normal]
+    b[q[normal], 1] = (pp.gap - hl[pp.j] * pp.k_j)[normal]
+    b[q[normal], 2] = (pp.gap - hl[pp.i] * pp.k_i)[normal]
+    b[q[stop], 1:] = 0.0  # too close, or no slack for the margin: stop closing in
+    present = np.stack([fi & fj, fi, fj], axis=1)
+    row_id = (np.cumsum(present.reshape(-1)) - 1).reshape(-1, 3)
+    rows, cols, vals = [], [], []
+    for k, drone, coef in ((0, i, ci), (0, j, cj), (1, i, ci), (2, j, cj)):
+        sel = present[:, k]
+        c = 2 * col[drone[sel]]
+        rows.append(np.repeat(row_id[sel, k], 2))
+        cols.append(np.stack([c, c + 1], axis=1).reshape(-1))
+        vals.append(coef[sel].reshape(-1))
+    return _Rows(np.concatenate(rows), np.concatenate(cols), np.concatenate(vals), b[present])
+
+
+def _violation(rows: _Rows, u: np.ndarray, free_idx: np.ndarray) -> float:
+    """The largest amount [m] by which the commands ``u`` [N, 2] break a constraint (0 when none)."""
+    if not len(rows.b):
         return 0.0
-    return float(max(0.0, (a @ u[free_idx].reshape(-1) - b).max()))
+    return float(max(0.0, rows.residual(u[free_idx].reshape(-1)).max()))
 
 
 @functools.lru_cache(maxsize=64)
@@ -258,26 +280,77 @@ def _hessian(m: int):
     return sparse.identity(2 * m, format="csc") * 2.0
 
 
-def _solve_qp(a: np.ndarray, b: np.ndarray, desired: np.ndarray, s: np.ndarray) -> np.ndarray | None:
-    """OSQP over the free drones' commands; None when it does not report a solution."""
-    import osqp
-    from scipy import sparse
+@functools.lru_cache(maxsize=64)
+def _octagon_rows(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(row, column, value) of ``|u_k| <= s_k`` as an octagon for ``m`` drones, rows from 0."""
+    k = len(_OCTAGON)
+    row = np.repeat(np.arange(m * k), 2)
+    col = 2 * np.repeat(np.arange(m), 2 * k) + np.tile([0, 1], m * k)
+    return row, col, np.tile(_OCTAGON.reshape(-1), m)
 
-    m = len(desired)
-    # u = 0 must stay feasible where it was: tighten by QP_MARGIN only rows with room for it
-    tight = b - np.minimum(QP_MARGIN, np.maximum(b, 0.0) / 2)
-    octagon = np.kron(np.eye(m), _OCTAGON)  # |u_k| <= s_k keeps the braking bound H valid
-    a_all = sparse.csc_matrix(np.vstack([a, octagon]))
-    b_all = np.concatenate([tight, np.repeat(s * _APOTHEM, len(_OCTAGON))])
-    prob = osqp.OSQP(algebra="builtin")  # named: otherwise every OSQP() probes for the CUDA and MKL builds
-    prob.setup(_hessian(m), -2.0 * desired.reshape(-1), a_all,
-               np.full(len(b_all), -np.inf), b_all, verbose=False, polishing=True, eps_abs=1e-7, eps_rel=1e-7,
-               max_iter=10000)
-    res = prob.solve(raise_error=False)
-    if res.info.status not in ("solved", "solved inaccurate") or res.x is None or not np.all(np.isfinite(res.x)):
-        log.debug("separation QP: %s", res.info.status)
-        return None
-    return np.asarray(res.x, dtype=float).reshape(m, 2)
+
+QP_EPS = 1e-6
+"""OSQP's absolute and relative tolerance [m]; polishing then makes the active constraints exact, and a
+solution outside them by more than ``VERIFY_TOL`` goes to the closed-form fallback."""
+QP_MAX_ITER = 4000
+"""OSQP's iteration limit (its default). A warm-started solve takes tens; one that hits this is not used."""
+
+
+class QPSolver:
+    """The joint QP of ``filter_velocities`` with its OSQP problem kept from one solve to the next. A solve with
+    the constraint pattern of the last one (the same free drones and the same kinds of rows for the same pairs:
+    the common case from one setpoint period to the next) hands OSQP only the new numbers (``update``) and
+    starts from the last solution (warm start); a new pattern is set up anew. Not thread-safe: one per solving
+    thread (``JointFilter`` owns one and solves one at a time)."""
+
+    def __init__(self) -> None:
+        self._prob = None
+        self._key: tuple | None = None
+        self.setups = 0
+        """OSQP set-ups (a new constraint pattern)."""
+        self.updates = 0
+        """Solves that reused the problem set up before, with new numbers, warm-started."""
+        self.iterations = 0
+        """ADMM iterations of the last solve."""
+
+    def solve(self, rows: _Rows, desired: np.ndarray, s: np.ndarray) -> np.ndarray | None:
+        """The commands [m, 2] closest to ``desired`` [m, 2] under ``rows`` and ``|u_k| <= s_k`` [m/s]; None
+        when OSQP reports no solution."""
+        m = len(desired)
+        n_pair = len(rows.b)
+        o_row, o_col, o_val = _octagon_rows(m)
+        row = np.concatenate([rows.row, o_row + n_pair])
+        col = np.concatenate([rows.col, o_col])
+        order = np.lexsort((row, col))  # compressed sparse column: by column, then row
+        indices = row[order].astype(np.int32)
+        data = np.concatenate([rows.val, o_val])[order]
+        indptr = np.zeros(2 * m + 1, dtype=np.int32)
+        np.cumsum(np.bincount(col, minlength=2 * m), out=indptr[1:])
+        # u = 0 must stay feasible where it was: tighten by QP_MARGIN only rows with room for it
+        upper = np.concatenate([rows.b - np.minimum(QP_MARGIN, np.maximum(rows.b, 0.0) / 2),
+                                np.repeat(s * _APOTHEM, len(_OCTAGON))])
+        q = -2.0 * desired.reshape(-1)
+        key = (m, len(upper), indptr.tobytes(), indices.tobytes())
+        if key == self._key:
+            self._prob.update(q=q, u=upper, Ax=data)
+            self.updates += 1
+        else:
+            import osqp
+            from scipy import sparse
+            self._prob = self._key = None
+            a = sparse.csc_matrix((data, indices, indptr), shape=(len(upper), 2 * m))
+            prob = osqp.OSQP(algebra="builtin")  # named: otherwise every OSQP() probes for the CUDA and MKL builds
+            prob.setup(_hessian(m), q, a, np.full(len(upper), -np.inf), upper, verbose=False, polishing=True,
+                       eps_abs=QP_EPS, eps_rel=QP_EPS, max_iter=QP_MAX_ITER, warm_starting=True)
+            self._prob, self._key = prob, key
+            self.setups += 1
+        res = self._prob.solve(raise_error=False)
+        self.iterations = int(res.info.iter)
+        if res.info.status not in ("solved", "solved inaccurate") or res.x is None or not np.all(np.isfinite(res.x)):
+            log.debug("separation QP: %s", res.info.status)
+            self._key = None  # nothing worth warm-starting from
+            return None
+        return np.asarray(res.x, dtype=float).reshape(m, 2)
 
 
 def _pairwise(pp: _Pairs, hl: np.ndarray, free: np.ndarray, desired: np.ndarray) -> np.ndarray:
@@ -301,11 +374,13 @@ def _pairwise(pp: _Pairs, hl: np.ndarray, free: np.ndarray, desired: np.ndarray)
 
 
 def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np.ndarray, controlled: np.ndarray,
-                      limits: Limits, previous: np.ndarray | None = None, use_qp: bool = True) -> SeparationResult:
+                      limits: Limits, previous: np.ndarray | None = None, use_qp: bool = True,
+                      solver: QPSolver | None = None) -> SeparationResult:
     """Filtered horizontal velocity commands [N, 2] [m/s] for the ``controlled`` drones (see the module
     docstring). ``positions`` [N, 2+] [m] and ``velocities`` [N, 2+] [m/s] of every drone, measured;
     ``desired`` [N, 2] the commands asked for (rows of obstacles are ignored); ``previous`` [N, 2] the commands
-    now in flight (default: the measured velocities)."""
+    now in flight (default: the measured velocities). ``solver``: a ``QPSolver`` kept between calls (its OSQP
+    problem is updated and warm-started); None solves from a cold start."""
     pos = np.asarray(positions, dtype=float)[:, :2]
     vel = np.asarray(velocities, dtype=float)[:, :2]
     want = np.array(desired, dtype=float).reshape(-1, 2)
@@ -336,18 +411,18 @@ def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np
     col = np.full(n, -1)
     col[free_idx] = np.arange(len(free_idx))
     pp = pp.take(~hopeless)
-    a, b = _rows(pp, hl, free, col)
-    if _violation(a, b, want, free_idx) <= VERIFY_TOL:
+    rows = _rows(pp, hl, free, col, pos)
+    if _violation(rows, want, free_idx) <= VERIFY_TOL:
         out[free] = want[free]
         return SeparationResult(out, braked, "unchanged")
     method = "pairwise"
     u = None
     if use_qp and len(free_idx):
-        x = _solve_qp(a, b, want[free_idx], s[free_idx])
+        x = (solver or QPSolver()).solve(rows, want[free_idx], s[free_idx])
         if x is not None:
             u = np.zeros((n, 2))
             u[free_idx] = x
-            if _violation(a, b, u, free_idx) <= VERIFY_TOL and np.all(
+            if _violation(rows, u, free_idx) <= VERIFY_TOL and np.all(
                     np.linalg.norm(x, axis=1) <= s[free_idx] + VERIFY_TOL):
                 method = "qp"
             else:
@@ -355,7 +430,7 @@ def filter_velocities(positions: np.ndarray, velocities: np.ndarray, desired: np
                 u = None
     if u is None:
         u = _pairwise(pp, hl, free, want)
-        if _violation(a, b, u, free_idx) > VERIFY_TOL:  # cannot happen; never send it anyway
+        if _violation(rows, u, free_idx) > VERIFY_TOL:  # cannot happen; never send it anyway
             log.error("separation fallback failed its own check: braking every controlled drone")
             return SeparationResult(out, ctrl.copy(), "brake")
     out[free] = u[free]
@@ -380,16 +455,22 @@ class Snapshot:
 
 
 STALE_PERIODS = 3
-"""With the solver thread running, a cache older than this many intervals is solved again on the asking
-thread (the solver thread stalled or died)."""
+"""With the solver thread running, a cached solution older than this many intervals is not used: the setpoint
+brakes (zero velocity, which every constraint allows) until the solver thread has solved again."""
 
 
 class JointFilter:
     """The joint solve shared by every link's receive thread. Started (``start``), a solver thread re-solves for
     all drones from ``gather()`` every ``interval`` s and the receive threads only read the cached result: one
-    QP per control period, none on the setpoint path. Not started (tests), or when the cache is older than
-    ``STALE_PERIODS`` intervals, the asking thread solves. A drone missing from a running filter's cache (it
-    just began to fly) brakes until the next solve. The cache's age is part of ``limits.latency``."""
+    QP per control period, none on the setpoint path, and a receive thread never waits for a solve. A drone
+    missing from a running filter's cache (it just began to fly), or a cache older than ``STALE_PERIODS``
+    intervals (the solver thread was starved of CPU), gives a brake until the next solve. Not started (tests),
+    the asking thread solves when the cache is an interval old. The cache's age is part of ``limits.latency``.
+
+    Why a stale cache brakes instead of being solved again on the receive thread (as before): on a loaded
+    machine the solver thread's solve is slow because the interpreter is busy, and then every receive thread
+    found the cache stale at once and solved in turn behind one lock (12 solves in a row, each as slow), which
+    held every setpoint for 50-300 ms. A brake costs one setpoint period of progress, never a stall."""
 
     def __init__(self, limits: Limits, gather: Callable[[], "Snapshot"], interval: float,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -400,17 +481,21 @@ class JointFilter:
         self._lock = threading.Lock()
         """Guards the cache and the counters (held for lookups only)."""
         self._solve_lock = threading.Lock()
-        """One solve at a time."""
+        """One solve at a time (the solver's OSQP problem is kept between solves)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._t = -math.inf
         self._cache: dict[str, tuple[np.ndarray, bool, bool]] = {}
+        self.solver = QPSolver()
+        """The joint QP, set up once and then updated and warm-started while its pattern holds."""
         self.solves = 0
         self.methods: dict[str, int] = {}
         self.braked = 0
         """Setpoints handed out as a brake because nothing safer was possible."""
         self.unplaced = 0
         """Of those, setpoints of drones not in the cache (no fresh position, or not flying, at the solve)."""
+        self.stale = 0
+        """Of those, setpoints braked because the cached solution was older than ``STALE_PERIODS`` intervals."""
         self.changed = 0
         """Setpoints the filter changed (braked included)."""
         self.setpoints = 0
@@ -437,8 +522,8 @@ class JointFilter:
         next_t = self._clock()
         while not self._stop.is_set():
             try:
-                self._solve(self._clock())
-            except Exception:  # the receive threads solve themselves once the cache is stale
+                self._solve()
+            except Exception:  # the setpoints brake once the cache is stale
                 log.exception("separation solve failed")
             next_t += self.interval
             delay = next_t - self._clock()
@@ -448,32 +533,37 @@ class JointFilter:
 
     def command(self, drone_id: str, now: float | None = None) -> np.ndarray:
         """Filtered horizontal command [m/s] of ``drone_id``; zero (a brake) when the drone is not in the
-        filter's picture (not controlled, or its state is unknown)."""
+        filter's picture (not controlled, or its state is unknown) or the picture is stale."""
         now = self._clock() if now is None else now
         running = self._thread is not None
+        if not running:
+            with self._lock:
+                solve = now - self._t >= self.interval or drone_id not in self._cache
+            if solve:
+                self._solve(now)
         with self._lock:
-            age = now - self._t
-            known = drone_id in self._cache
-        if age >= (STALE_PERIODS if running else 1) * self.interval or not (known or running):
-            self._solve(now)
-        with self._lock:
-            entry = self._cache.get(drone_id)
+            stale = running and now - self._t >= STALE_PERIODS * self.interval
+            entry = None if stale else self._cache.get(drone_id)
             v, braked, changed = entry if entry is not None else (np.zeros(2), True, True)
             self.setpoints += 1
             self.braked += int(braked)
-            self.unplaced += int(entry is None)
+            self.stale += int(stale)
+            self.unplaced += int(entry is None and not stale)
             self.changed += int(changed)
             return v.copy()
 
-    def _solve(self, now: float) -> None:
+    def _solve(self, now: float | None = None) -> None:
+        """Solve from a fresh snapshot; the cache is stamped ``now`` (default: the clock just before the
+        snapshot is taken, so that the cache's age counts from the data it was solved on)."""
         with self._solve_lock:
             t0 = time.perf_counter()
+            now = self._clock() if now is None else now
             snap: Snapshot = self._gather()
             cache: dict[str, tuple[np.ndarray, bool, bool]] = {}
             method = "none"
             if snap.ids:
                 res = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled,
-                                        self.limits, snap.previous)
+                                        self.limits, snap.previous, solver=self.solver)
                 method = res.method
                 want = _cap_speed(np.asarray(snap.desired, dtype=float).reshape(-1, 2), self.limits.max_speed)
                 changed = ~np.all(np.abs(res.velocity - want) <= 1e-9, axis=1)
@@ -493,4 +583,5 @@ class JointFilter:
                 if ms.size else {}
             return {"solves": self.solves, "methods": dict(self.methods), "setpoints": self.setpoints, **timing,
                     "changed_setpoints": self.changed, "braked_setpoints": self.braked,
-                    "unplaced_setpoints": self.unplaced}
+                    "unplaced_setpoints": self.unplaced, "stale_setpoints": self.stale,
+                    "qp_setups": self.solver.setups, "qp_updates": self.solver.updates}

@@ -307,3 +307,55 @@ def test_takeoff_height_is_clamped_into_the_band() -> None:
     assert gf.clamp_height(5.0) == pytest.approx(1.8)
     assert gf.clamp_height(math.nan) == pytest.approx(0.4)
     assert gf.clamp_height(1.0) == 1.0
+
+
+def test_one_drones_geometry_never_holds_up_another_drones_setpoint(monkeypatch) -> None:
+    """Every link's receive thread passes the one Geofence: the geometry runs outside its lock (with it inside,
+    the 12 receive threads of the demo queued behind each other: p99 59-65 ms in the ground station)."""
+    import threading
+
+    from groundstation import safety
+    entered, release = threading.Event(), threading.Event()
+    real = safety.limit_velocity
+
+    def slow_for_a(fence, p, v, dt):
+        if threading.current_thread().name == "a":
+            entered.set()
+            release.wait(30.0)
+        return real(fence, p, v, dt)
+
+    monkeypatch.setattr(safety, "limit_velocity", slow_for_a)
+    gf = Geofence(FenceConfig())
+    t = threading.Thread(target=gf.filter_velocity, args=("cf_a", (0, 0, 1), (0.5, 0, 0), 0.1), name="a")
+    t.start()
+    try:
+        assert entered.wait(10.0)
+        out = gf.filter_velocity("cf_b", (0, 0, 1), (0.3, 0, 0), 0.1)  # would block here with the lock held
+        assert out.state is GuardState.OK and out.value[0] == pytest.approx(0.3)
+        assert not release.is_set()
+    finally:
+        release.set()
+        t.join(10.0)
+    assert gf.stats("cf_a").setpoints == gf.stats("cf_b").setpoints == 1
+
+
+def test_concurrent_setpoints_are_counted_and_filtered_as_serial_ones() -> None:
+    import threading
+
+    fence = FenceConfig()
+    rng = np.random.default_rng(0)
+    work = {f"cf{k}": [(rng.uniform(-2.5, 2.5, 3) * (1, 1, 0.4) + (0, 0, 1), rng.uniform(-3, 3, 3))
+                       for _ in range(300)] for k in range(8)}
+    serial, shared = Geofence(fence, clock=lambda: 0.0), Geofence(fence, clock=lambda: 0.0)  # timing-free
+    want = {d: [serial.filter_velocity(d, p, v, 0.1) for p, v in seq] for d, seq in work.items()}
+    got: dict[str, list] = {}
+    threads = [threading.Thread(target=lambda d=d, seq=seq: got.__setitem__(
+        d, [shared.filter_velocity(d, p, v, 0.1) for p, v in seq])) for d, seq in work.items()]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60.0)
+    for d in work:
+        assert [(o.state, o.changed) for o in got[d]] == [(o.state, o.changed) for o in want[d]]
+        np.testing.assert_array_equal(np.array([o.value for o in got[d]]), np.array([o.value for o in want[d]]))
+        assert shared.stats(d) == serial.stats(d)
