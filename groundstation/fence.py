@@ -23,6 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from groundstation.cf_firmware import WDT_SHUTDOWN_S
+from runtime.geometry import clip_convex
 from runtime.spec import SpecError, SwarmSpec, from_mapping, load_toml
 
 TOL = 1e-9
@@ -192,7 +193,7 @@ class Geometry:
         normals, offsets = _half_planes(outer)
         inner = outer.copy()
         for n, c in zip(normals, offsets - f.margin):
-            inner = _clip(inner, n, c)
+            inner = clip_convex(inner, n, c)
         if len(inner) < 3 or _area(inner) < 1e-6:
             raise SpecError(f"fence.margin: {f.margin} m leaves nothing of the fence polygon: lower fence.margin "
                             f"or enlarge the fence")
@@ -255,20 +256,6 @@ def _half_planes(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     e = np.roll(poly, -1, axis=0) - poly
     n = np.stack([e[:, 1], -e[:, 0]], axis=1) / np.hypot(e[:, 0], e[:, 1])[:, None]
     return n, np.einsum("ij,ij->i", n, poly)
-
-
-def _clip(poly: np.ndarray, n: np.ndarray, c: float) -> np.ndarray:
-    """Sutherland-Hodgman: the part of convex ``poly`` with ``n @ x <= c``."""
-    out: list[np.ndarray] = []
-    k = len(poly)
-    for i in range(k):
-        a, b = poly[i], poly[(i + 1) % k]
-        da, db = float(n @ a - c), float(n @ b - c)
-        if da <= 0:
-            out.append(a)
-        if (da < 0 < db) or (db < 0 < da):
-            out.append(a + (b - a) * (da / (da - db)))
-    return np.array(out, dtype=float).reshape(-1, 2)
 
 
 def _in_polygon(normals: np.ndarray, offsets: np.ndarray, xy: np.ndarray, tol: float = TOL) -> bool:

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from scipy.spatial import Voronoi
 from shapely.geometry import Polygon, box
 
-from training.voronoi import bounded_cell_areas, bounded_cells
+from training.voronoi import bounded_cell_areas, bounded_cell_polygons, bounded_cells
 
 HW = 3.0
 SQUARE = (2 * HW) ** 2
@@ -314,3 +314,41 @@ def test_bad_shapes_raise(shape):
 def test_bad_dtypes_raise(pts):
     with pytest.raises(TypeError, match="points"):
         bounded_cells(pts, HW)
+
+
+def shapely_cell_polygons(pts: np.ndarray, hw: float) -> list:
+    """Reference cells of one env as shapely polygons (each coincident copy gets the whole shared cell)."""
+    big = 100.0 * (hw + np.abs(pts).max())
+    out = []
+    for i in range(len(pts)):
+        cell = box(-hw, -hw, hw, hw)
+        for j in range(len(pts)):
+            d = pts[j] - pts[i]
+            if j == i or not d.any():
+                continue
+            nrm = d / np.hypot(*d)
+            tan = np.array([-nrm[1], nrm[0]])
+            mid = 0.5 * (pts[i] + pts[j])
+            cell = cell.intersection(Polygon([mid + big * tan, mid - big * tan, mid - big * tan - big * nrm,
+                                              mid + big * tan - big * nrm]))
+        out.append(cell)
+    return out
+
+
+@pytest.mark.parametrize("n, seed", [(1, 0), (2, 1), (12, 2), (12, 3), (25, 4)])
+def test_cell_polygons_are_shapely_s_cells_and_the_kernel_s_areas(n, seed):
+    """The drawn cells (``bounded_cell_polygons``, the kernel's own clipping) cover exactly shapely's cells, CCW,
+    with the kernel's areas."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-HW, HW, (n, 2))
+    if n > 3:
+        pts[1] = pts[0]  # a coincident pair
+    polys = bounded_cell_polygons(pts, HW)
+    ref = shapely_cell_polygons(pts, HW)
+    areas = bounded_cell_areas(pts[None], HW)[0]
+    mult = np.array([sum(np.array_equal(p, q) for q in pts) for p in pts])
+    for poly, cell, area, m in zip(polys, ref, areas, mult):
+        mine = Polygon(poly)
+        assert mine.is_valid and mine.exterior.is_ccw
+        assert mine.symmetric_difference(cell).area < 1e-12
+        assert mine.area / m == pytest.approx(area, abs=1e-12)

@@ -20,6 +20,7 @@ from matplotlib.patches import Circle, Polygon, Rectangle  # noqa: E402
 
 from runtime.metrics import EpisodeRecord, MetricsAccumulator  # noqa: E402
 from runtime.spec import Role, SwarmSpec  # noqa: E402
+from training.voronoi import bounded_cell_polygons  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -69,35 +70,8 @@ def record_episode(cfg, policy, seed: int = 0) -> EpisodeTrace:
 
 def voronoi_polygons(points: np.ndarray, half_width: float) -> list[np.ndarray]:
     """Each point's Voronoi cell clipped to ``[-half_width, half_width]^2``, as ``[V, 2]`` CCW vertices
-    (possibly empty). Plain Python half-plane clipping for one env, for drawing only; the batched kernel
-    for rewards and Lloyd is ``training.voronoi.bounded_cells``."""
-    pts = np.asarray(points, dtype=np.float64)
-    hw = float(half_width)
-    square = np.array([[-hw, -hw], [hw, -hw], [hw, hw], [-hw, hw]])
-    cells = []
-    for i, p in enumerate(pts):
-        poly = square
-        for j, q in enumerate(pts):
-            if j == i or np.array_equal(p, q) or len(poly) == 0:
-                continue
-            n = q - p
-            poly = _clip(poly, n, float(n @ (p + q) / 2))
-        cells.append(poly)
-    return cells
-
-
-def _clip(poly: np.ndarray, n: np.ndarray, c: float) -> np.ndarray:
-    """Sutherland-Hodgman: the part of ``poly`` with ``n . x <= c``."""
-    f = poly @ n - c
-    out = []
-    for k in range(len(poly)):
-        a, b = poly[k], poly[(k + 1) % len(poly)]
-        fa, fb = f[k], f[(k + 1) % len(poly)]
-        if fa <= 0:
-            out.append(a)
-        if (fa < 0 < fb) or (fb < 0 < fa):
-            out.append(a + fa / (fa - fb) * (b - a))
-    return np.array(out).reshape(-1, 2)
+    (possibly empty): the cells of the scouts' reward themselves (``training.voronoi.bounded_cell_polygons``)."""
+    return bounded_cell_polygons(points, half_width)
 
 
 def covered_cells(trace: EpisodeTrace) -> tuple[np.ndarray, np.ndarray]:

@@ -39,7 +39,9 @@ import numbers
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["bounded_cells", "bounded_cell_areas"]
+from runtime.geometry import clip_into
+
+__all__ = ["bounded_cell_areas", "bounded_cell_polygons", "bounded_cells"]
 
 # Cells handled by one parallel task: large enough to amortize its scratch buffers, small enough to balance.
 _CHUNK = 32
@@ -50,11 +52,13 @@ _STOP_MARGIN = 1.0 + 1e-9
 
 
 @njit(cache=True, fastmath=False)
-def _cell(pts, b, i, hw, key, idx, fv, bx, by):
-    """Area and centroid ``(area, cx, cy)`` of cell ``i`` of env ``b``; the other arguments are scratch.
+def _clip_cell(pts, b, i, hw, key, idx, fv, bx, by):
+    """Clip cell ``i`` of env ``b``: returns ``(src, nv, mult)``, its ``nv`` CCW vertices at offset ``src`` of
+    ``bx, by`` and how many points share it (coincident copies); the other arguments are scratch.
 
-    ``bx, by`` hold two vertex buffers of ``cap`` slots each, at offsets 0 and ``cap``: each clip reads one
-    and writes the other (offsets, not swapped array variables, which would cost reference counting).
+    ``bx, by`` hold two vertex buffers of ``cap`` slots each, at offsets 0 and ``cap``: each clip
+    (``runtime.geometry.clip_into``) reads one and writes the other (offsets, not swapped array variables, which
+    would cost reference counting).
     """
     n = pts.shape[1]
     cap = bx.shape[0] // 2
@@ -119,37 +123,24 @@ def _cell(pts, b, i, hw, key, idx, fv, bx, by):
         if fmax <= 0.0:
             continue
         dst = cap - src
-        out = 0
+        nv = clip_into(bx, by, src, nv, fv, dst, cap)
+        src = dst
         r2max = 0.0
         for v in range(nv):
-            w = v + 1 if v + 1 < nv else 0
-            fa = fv[v]
-            fb = fv[w]
-            ax = bx[src + v]
-            ay = by[src + v]
-            if fa <= 0.0 and out < cap:
-                bx[dst + out] = ax
-                by[dst + out] = ay
-                out += 1
-                ex = ax - pix
-                ey = ay - piy
-                r2max = max(r2max, ex * ex + ey * ey)
-            # Strict signs: a vertex lying on the line is kept once, never doubled by a zero-length cut.
-            if ((fa < 0.0 and fb > 0.0) or (fa > 0.0 and fb < 0.0)) and out < cap:
-                t = fa / (fa - fb)
-                ax = ax + t * (bx[src + w] - ax)
-                ay = ay + t * (by[src + w] - ay)
-                bx[dst + out] = ax
-                by[dst + out] = ay
-                out += 1
-                ex = ax - pix
-                ey = ay - piy
-                r2max = max(r2max, ex * ex + ey * ey)
-        src = dst
-        nv = out
+            ex = bx[src + v] - pix
+            ey = by[src + v] - piy
+            r2max = max(r2max, ex * ex + ey * ey)
         if nv < 3:
             break
+    return src, nv, mult
 
+
+@njit(cache=True, fastmath=False)
+def _cell(pts, b, i, hw, key, idx, fv, bx, by):
+    """Area and centroid ``(area, cx, cy)`` of cell ``i`` of env ``b``; the other arguments are scratch."""
+    pix = pts[b, i, 0]
+    piy = pts[b, i, 1]
+    src, nv, mult = _clip_cell(pts, b, i, hw, key, idx, fv, bx, by)
     a2 = 0.0
     sx = 0.0
     sy = 0.0
@@ -179,6 +170,14 @@ def _cell(pts, b, i, hw, key, idx, fv, bx, by):
 
 
 @njit(cache=True, fastmath=False)
+def _scratch(n):
+    """The scratch buffers of ``_clip_cell`` for ``n`` points per env: ``key, idx, fv, bx, by``."""
+    # Exact arithmetic gives at most 4 + (N - 1) vertices; the slack absorbs rounding-made extra crossings.
+    cap = 2 * n + 16
+    return np.empty(n), np.empty(n, dtype=np.int64), np.empty(cap), np.empty(2 * cap), np.empty(2 * cap)
+
+
+@njit(cache=True, fastmath=False)
 def _run_cells(pts, hw, areas, cents, want_centroids, start, stop):
     """Cells ``start <= b * N + i < stop`` into ``areas`` (and ``cents`` when ``want_centroids``).
 
@@ -187,13 +186,7 @@ def _run_cells(pts, hw, areas, cents, want_centroids, start, stop):
     false, so no clip writes more than it would otherwise; the caller discards the output and raises.
     """
     n = pts.shape[1]
-    # Exact arithmetic gives at most 4 + (N - 1) vertices; the slack absorbs rounding-made extra crossings.
-    cap = 2 * n + 16
-    key = np.empty(n)
-    idx = np.empty(n, dtype=np.int64)
-    fv = np.empty(cap)
-    bx = np.empty(2 * cap)
-    by = np.empty(2 * cap)
+    key, idx, fv, bx, by = _scratch(n)
     bad = 0
     for cell in range(start, stop):
         b = cell // n
@@ -268,3 +261,33 @@ def bounded_cells(points, half_width: float) -> tuple[np.ndarray, np.ndarray]:
 def bounded_cell_areas(points, half_width: float) -> np.ndarray:
     """Areas ``[B, N]`` only, the reward's per-step call: same kernel as ``bounded_cells``."""
     return _compute(points, half_width, False)[0]
+
+
+@njit(cache=True, fastmath=False)
+def _polygons(pts, hw):
+    n = pts.shape[1]
+    key, idx, fv, bx, by = _scratch(n)
+    cap = fv.shape[0]
+    xs = np.empty((n, cap))
+    ys = np.empty((n, cap))
+    counts = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        src, nv, _ = _clip_cell(pts, 0, i, hw, key, idx, fv, bx, by)
+        if nv >= 3:
+            counts[i] = nv
+            for v in range(nv):
+                xs[i, v] = bx[src + v]
+                ys[i, v] = by[src + v]
+    return xs, ys, counts
+
+
+def bounded_cell_polygons(points, half_width: float) -> list[np.ndarray]:
+    """Each point's cell of one env, ``points [N, 2]``, as ``[V, 2]`` CCW vertices (``[0, 2]`` when empty): the
+    very cells whose areas ``bounded_cells`` returns (for drawing). Coincident points each get the whole shared
+    cell."""
+    pts = _as_points(np.asarray(points)[None])
+    hw = _as_half_width(half_width)
+    if not np.isfinite(pts).all():
+        raise ValueError("points contains NaN or inf: every coordinate must be finite")
+    xs, ys, counts = _polygons(pts, hw)
+    return [np.stack([xs[i, :k], ys[i, :k]], axis=1) for i, k in enumerate(counts)]
