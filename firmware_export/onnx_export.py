@@ -37,9 +37,8 @@ import onnxruntime as ort
 import torch
 from onnx import numpy_helper
 
-from runtime.observation import encode_observations, new_knowledge, update_knowledge
+from firmware_export.observations import random_observations, simulate
 from runtime.spec import Role, SwarmSpec
-from runtime.world import World
 from training.checkpoint import CheckpointError, load_actors
 from training.networks import Actor
 
@@ -112,42 +111,25 @@ def _annotate(model: onnx.ModelProto, spec: SwarmSpec, agent_id: str, role: Role
 # parity
 
 
-def random_observations(spec: SwarmSpec, role: Role, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` observations drawn uniformly within the layout's per-entry bounds, float32 ``[n, obs_dim]``."""
-    lo, hi = spec.layout(role).bounds()
-    return rng.uniform(np.array(lo), np.array(hi), (n, len(lo))).astype(np.float32)
-
-
-def recorded_observations(spec: SwarmSpec, actors: list[Actor], n: int, seed: int = 0) -> list[np.ndarray]:
-    """Per agent, ``n`` float32 observations ``[n, obs_dim]`` recorded while the actors fly in the world.
-
-    The world, knowledge and encoder are the runtime's; ``ceil(n / 100)`` envs run for 100 steps
-    (episodes reset every ``spec.timing.episode_steps``)."""
+def flown_observations(spec: SwarmSpec, actors: list[Actor], n: int, seed: int = 0) -> list[np.ndarray]:
+    """Per agent, ``n`` float32 observations ``[n, obs_dim]`` recorded while the trained actors fly in the world
+    (``observations.simulate``): ``ceil(n / 100)`` envs run for 100 steps (episodes reset every
+    ``spec.timing.episode_steps``)."""
     steps = 100
     n_envs = max(1, -(-n // steps))
-    world = World(spec, n_envs, seed=seed)
-    world.reset()
-    know = new_knowledge(spec, n_envs)
     dims = [spec.obs_dim(r) for r in spec.roles]
     rec = [np.empty((n_envs * steps, d), dtype=np.float32) for d in dims]
     actions = np.zeros((n_envs, spec.n_agents, 2))
-    obs = np.zeros((n_envs, spec.n_agents, spec.max_obs_dim))
-    s = world.state
+
+    def fly(obs: np.ndarray) -> np.ndarray:
+        for i, actor in enumerate(actors):
+            actions[:, i] = actor(torch.from_numpy(obs[:, i, :dims[i]].astype(np.float32))).numpy()
+        return actions
+
     with torch.no_grad():
-        for k in range(steps):
-            t = s.step * spec.timing.control_period
-            update_knowledge(spec, know, s.pos, s.vel, t)
-            encode_observations(spec, s.pos, s.vel, s.obstacle_pos, s.obstacle_radius, know, t, out=obs)
-            for i, actor in enumerate(actors):
-                o = obs[:, i, :dims[i]].astype(np.float32)
-                rec[i][k * n_envs:(k + 1) * n_envs] = o
-                actions[:, i] = actor(torch.from_numpy(o)).numpy()
-            world.step(actions)
-            done = s.step >= spec.timing.episode_steps
-            if done.any():
-                ids = np.nonzero(done)[0]
-                world.reset(ids)
-                know[ids] = new_knowledge(spec, ids.size)
+        for k, obs in zip(range(steps), simulate(spec, n_envs, seed, fly)):
+            for i in range(len(actors)):
+                rec[i][k * n_envs:(k + 1) * n_envs] = obs[:, i, :dims[i]]
     return [r[:n] for r in rec]
 
 
@@ -201,7 +183,7 @@ def export_run(run_dir: str | Path, out_dir: str | Path, n_random: int = 10_000,
     out = Path(out_dir)
     rng = np.random.default_rng(seed)
     actors = [a for _, _, a in agents]
-    recorded = recorded_observations(spec, actors, n_recorded, seed) if n_recorded else [None] * len(actors)
+    recorded = flown_observations(spec, actors, n_recorded, seed) if n_recorded else [None] * len(actors)
     templates: dict[tuple[int, tuple[int, ...]], onnx.ModelProto] = {}
     models: list[tuple[str, Role, int, onnx.ModelProto]] = []
     report: dict[str, dict[str, float]] = {}
@@ -246,19 +228,7 @@ def export_run(run_dir: str | Path, out_dir: str | Path, n_random: int = 10_000,
 
 
 # --------------------------------------------------------------------------------------------------
-# CLI hook: `swarm-export onnx` (firmware_export.cli.add_onnx declares the same arguments without importing
-# torch and calls run_onnx_command); add_onnx_parser is kept for embedding in other parsers
-
-
-def add_onnx_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = sub.add_parser("onnx", help="write one ONNX actor per agent and a manifest.json (parity-checked)")
-    p.add_argument("--run", required=True, help="training run folder holding actors.pt (runs/NAME)")
-    p.add_argument("--out", required=True, help="models folder to write (models/NAME/)")
-    p.add_argument("--random", type=int, default=10_000, help="random observations for the parity check")
-    p.add_argument("--recorded", type=int, default=10_000, help="recorded observations for the parity check")
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=run_onnx_command)
-    return p
+# `swarm-export onnx` (firmware_export.cli.add_onnx declares its arguments without importing torch)
 
 
 def run_onnx_command(args: argparse.Namespace) -> int:

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from firmware_export import onnx_export
-from firmware_export.onnx_export import ExportError, export_run, random_observations, recorded_observations, sha256_file
+from firmware_export.observations import random_observations
+from firmware_export.onnx_export import ExportError, export_run, flown_observations, sha256_file
 from runtime.spec import Role, SwarmSpec
 from runtime_fixtures import exported, make_run
 from training.checkpoint import load_actors
@@ -50,7 +51,7 @@ def test_parity_against_torch_on_random_and_recorded_observations():
     run, models, _ = exported()
     spec, agents, _ = load_actors(run)
     actors = [a for _, _, a in agents]
-    recorded = recorded_observations(spec, actors, 10_000, seed=7)
+    recorded = flown_observations(spec, actors, 10_000, seed=7)
     rng = np.random.default_rng(3)
     for (aid, role, actor), rec in zip(agents, recorded):
         sess = ort.InferenceSession(str(models / f"{aid}.onnx"), providers=["CPUExecutionProvider"])

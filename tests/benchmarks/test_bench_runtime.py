@@ -36,7 +36,7 @@ def models():
 
 
 def _obs(spec: SwarmSpec, n: int, seed: int = 0) -> np.ndarray:
-    from firmware_export.onnx_export import random_observations
+    from firmware_export.observations import random_observations
     return random_observations(spec, spec.roles[0], n, np.random.default_rng(seed))
 
 
