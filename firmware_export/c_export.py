@@ -12,7 +12,7 @@ import numpy as np
 from firmware_export import fw_budget
 from firmware_export.cgen import DEFAULT_WEIGHTS_IN, CSources, generate
 from firmware_export.mlp_graph import ActorModel, CExportError, Dense, read_actor
-from firmware_export.observations import random_observations, recorded_observations
+from firmware_export.observations import parity_observations
 from firmware_export.quantize import QDense, dequantized, float_layers, quantize_layers
 
 log = logging.getLogger(__name__)
@@ -31,8 +31,7 @@ def calibration_observations(model: ActorModel, n: int = CALIB_OBS, seed: int = 
     """Half uniform in the spec's ranges, half recorded from the simulator, from seeds the parity checks do not use."""
     if n < 2:
         raise CExportError(f"--calib-obs {n}: use at least a few thousand calibration observations")
-    return np.concatenate([random_observations(model.spec, model.role, n - n // 2, seed),
-                           recorded_observations(model.spec, model.role, n // 2, seed + 1)])
+    return parity_observations(model.spec, model.role, n, seed, recorded_seed=seed + 1)
 
 
 @dataclass(frozen=True)

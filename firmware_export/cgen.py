@@ -137,8 +137,9 @@ def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = DEFA
         "",
         *radio_msg_text(spec),
         "",
-        "/* Call once before the first swarm_policy_act (e.g. in appMain): with WEIGHTS_IN \"ram\" or \"ccm\" it",
-        " * copies the weight tables from flash into SRAM or CCM RAM; with \"flash\" it does nothing. */",
+        "/* On the Cortex-M4, call once before the first swarm_policy_act (e.g. in appMain): with WEIGHTS_IN",
+        " * \"ram\" or \"ccm\" it copies the weight tables from flash into SRAM or CCM RAM; with \"flash\" it does",
+        " * nothing. Any other build (a host's) reads the tables in place and needs no call. */",
         "void swarm_policy_init(void);",
         "",
         "/* One inference: obs laid out as above, act in [-1, 1]^2 (times MAX_SPEED = velocity [m/s], world",
@@ -257,7 +258,9 @@ def _check(quant: str, tanh: str, weights_in: str) -> None:
 
 
 def _placement(weights_in: str) -> list[str]:
-    """The tables' working copy (or none) and ``swarm_policy_init``."""
+    """The tables' working copy (or none) and ``swarm_policy_init``. The copy is for the Cortex-M4's memory
+    system only: any other build (the host's tests and simulations) reads the tables in place, so that there
+    ``swarm_policy_act`` is correct without the init call."""
     if weights_in == "flash":
         return ["#define SWP_T swp_rom", "", "void swarm_policy_init(void)", "{", "}", ""]
     if weights_in == "ccm":
@@ -265,14 +268,17 @@ def _placement(weights_in: str) -> list[str]:
             "/* The working copy in the STM32F405's core-coupled RAM (zero wait states, not reachable by DMA), in the",
             " * Crazyflie firmware's .ccmbss section (its NO_DMA_CCM_SAFE_ZERO_INIT); filled by swarm_policy_init.",
             " * Define SWARM_POLICY_CCM_ATTR (empty for plain RAM) to place it elsewhere. */",
-            "#ifndef SWARM_POLICY_CCM_ATTR", "#if defined(__ARM_ARCH_7EM__)",
+            "#ifndef SWARM_POLICY_CCM_ATTR",
             f'#define SWARM_POLICY_CCM_ATTR __attribute__((section("{CCM_SECTION}")))',
-            "#else", "#define SWARM_POLICY_CCM_ATTR", "#endif", "#endif",
+            "#endif",
             "static swp_tables_t swp_ram SWARM_POLICY_CCM_ATTR;"]
     else:
         where = ["/* The working copy in main SRAM (.bss; zero wait states at 168 MHz like CCM), filled by",
                  " * swarm_policy_init. */", "static swp_tables_t swp_ram;"]
-    return where + ["#define SWP_T swp_ram", "", "void swarm_policy_init(void)", "{", "    swp_ram = swp_rom;", "}", ""]
+    return ["#if defined(__ARM_ARCH_7EM__)", *where, "#define SWP_T swp_ram", "", "void swarm_policy_init(void)", "{",
+            "    swp_ram = swp_rom;", "}", "#else",
+            "/* Not the Cortex-M4 (a host build): the tables are read in place; swarm_policy_init does nothing. */",
+            "#define SWP_T swp_rom", "", "void swarm_policy_init(void)", "{", "}", "#endif", ""]
 
 
 def source_text(model: ActorModel, quant: str, tanh: str, weights_in: str = DEFAULT_WEIGHTS_IN,

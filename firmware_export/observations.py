@@ -62,7 +62,9 @@ def recorded_observations(spec: SwarmSpec, role: Role, n: int, seed: int = 0, n_
     return np.concatenate(rows)[:n].astype(np.float32)
 
 
-def parity_observations(spec: SwarmSpec, role: Role, n: int, seed: int = 0) -> np.ndarray:
-    """Half random within the spec's ranges, half recorded from the simulator."""
+def parity_observations(spec: SwarmSpec, role: Role, n: int, seed: int = 0,
+                        recorded_seed: int | None = None) -> np.ndarray:
+    """Half random within the spec's ranges (``seed``), half recorded from the simulator (``recorded_seed``,
+    default ``seed``)."""
     return np.concatenate([random_observations(spec, role, n - n // 2, seed),
-                           recorded_observations(spec, role, n // 2, seed)])
+                           recorded_observations(spec, role, n // 2, seed if recorded_seed is None else recorded_seed)])

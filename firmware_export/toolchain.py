@@ -82,14 +82,15 @@ def build_host_library(c_files: list[Path], out: Path, extra: tuple[str, ...] = 
 class HostPolicy:
     """``swarm_policy_act`` from a host-compiled library, called through ctypes."""
 
-    def __init__(self, library: Path, obs_dim: int, act_dim: int = 2) -> None:
+    def __init__(self, library: Path, obs_dim: int, act_dim: int = 2, init: bool = True) -> None:
         self.lib = ctypes.CDLL(str(library))
         self.fn = self.lib.swarm_policy_act
         fp = ctypes.POINTER(ctypes.c_float)
         self.fn.argtypes = [fp, fp]
         self.fn.restype = None
         self.lib.swarm_policy_init.restype = None
-        self.lib.swarm_policy_init()  # tables to their working copy (a no-op with --weights-in flash)
+        if init:  # False: as a caller that forgets it (a host build reads the tables in place)
+            self.lib.swarm_policy_init()  # tables to their working copy (a no-op with --weights-in flash)
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self._obs = np.zeros(obs_dim, np.float32)
         self._act = np.zeros(act_dim, np.float32)

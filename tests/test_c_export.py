@@ -189,6 +189,17 @@ def _host(export, work: Path) -> HostPolicy:
 # parity
 
 
+@pytest.mark.parametrize("weights_in", ["ram", "ccm", "flash"])
+def test_a_host_build_is_correct_without_the_init_call(work, pursuer_onnx, pursuer_obs, weights_in):
+    """swarm_policy_init copies the tables for the Cortex-M4; a host build reads them in place, so a caller that
+    never calls it gets the policy's actions, not zeros."""
+    ex = export_c(pursuer_onnx, work / f"noinit_{weights_in}", weights_in=weights_in, check_budget=False)
+    lib = build_host_library([ex.source], work / f"lib_noinit_{weights_in}.so", HOST)
+    got = HostPolicy(lib, ex.model.obs_dim, init=False).act_batch(pursuer_obs[:200])
+    ref = onnx_actions(pursuer_onnx, pursuer_obs[:200])
+    assert np.abs(ref).max() > 0.1 and np.abs(got - ref).max() <= 1e-5
+
+
 def test_recorded_observations_come_from_the_simulator(spec):
     obs = recorded_observations(spec, Role.PURSUER, 400, seed=2)
     lay = spec.layout(Role.PURSUER)
