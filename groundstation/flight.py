@@ -75,6 +75,9 @@ class FlightSession(SetpointPath, FailsafeSupervisor):
         self.actors = roles_mod.parse_actors(actors)
         self.drones = {d: DroneState(d, link, teams[d]) for d, link in links.items()}
         self.events: list[FlightEvent] = []
+        self._event_rows: list[dict[str, Any]] = []
+        """``events`` as the live view shows them, built once each (an event never changes)."""
+        self._event_rows_lock = threading.Lock()
         self.height = self.geofence.clamp_height(config.height)
         self._record = record
         self._lock = threading.RLock()
@@ -162,9 +165,14 @@ class FlightSession(SetpointPath, FailsafeSupervisor):
                 "telemetry_age": round(min(d.link.telemetry_age(now), 999.0), 3),
             })
         n = len(self.events)
-        first = max(events_since, n - max_events, 0)
-        events = [{"i": i, "t": round(e.t - self._t0, 3), "drone": e.drone, "kind": e.kind, "detail": e.detail}
-                  for i, e in zip(range(first, n), self.events[first:n])]
+        with self._event_rows_lock:
+            rows = self._event_rows
+            for i in range(len(rows), n):  # only the events that are new since the last snapshot
+                e = self.events[i]
+                rows.append({"i": i, "t": round(e.t - self._t0, 3), "drone": e.drone, "kind": e.kind,
+                             "detail": e.detail})
+            first = max(events_since, n - max_events, 0)
+            events = rows[first:n]
         return {"t": round(now - self._t0, 3), "mission": self._mission, "drones": drones, "events": events,
                 "n_events": n}
 

@@ -345,3 +345,53 @@ def test_replay_and_report_of_the_demo_log(demo_flight, tmp_path, capsys):
     port = _free_port()
     assert cli.main(["replay", str(box["log"]), "--view", str(port), "--speed", "50", "--once"]) == 0
     assert f"live view: http://127.0.0.1:{port}/" in capsys.readouterr().out
+
+
+class _CountingSource:
+    """A source whose every state is fresh; counts the states asked for and the controls run."""
+
+    controls = ("land_all",)
+
+    def __init__(self) -> None:
+        self.states = 0
+        self.ran: list[str] = []
+
+    def state(self) -> dict:
+        self.states += 1
+        return {"mode": "live", "t": self.states * 0.05, "mission": True, "drones": [], "events": [],
+                "controls": list(self.controls), "scene": None, "odd": float("nan")}
+
+    def control(self, name: str, args: dict) -> dict:
+        self.ran.append(name)
+        return {"ok": True, "control": name}
+
+
+def test_the_web_server_runs_outside_the_ground_stations_interpreter(monkeypatch):
+    """Tabs cost the ground station nothing: the state is encoded and pushed by the server's own process (no JSON
+    encoding in this interpreter while three tabs read at >= 10 Hz), and a server that dies takes nothing with it:
+    the source is no longer asked, and stop() is prompt."""
+    import os
+
+    encodes = []
+    real = json.dumps
+    monkeypatch.setattr(json, "dumps", lambda *a, **k: (encodes.append(1), real(*a, **k))[1])
+    source = _CountingSource()
+    view = LiveView(port=0).start()
+    try:
+        assert view._proc.pid != os.getpid()
+        view.attach(source)
+        tabs = receive(view, 1.0, tabs=3)
+        assert all(len(msgs) >= 10 for msgs in tabs), [len(m) for m in tabs]
+        assert tabs[0][-1]["odd"] is None  # strict JSON, encoded over there
+        assert wait_until(lambda: view.clients == 0, timeout=5)
+        assert encodes == []
+        code, out = post(view, "/api/land_all")
+        assert code == 200 and source.ran == ["land_all"]
+        view._proc.kill()
+        assert wait_until(lambda: not view._threads[0].is_alive(), timeout=10)  # the feed ended
+        asked = source.states
+    finally:
+        t0 = time.monotonic()
+        view.stop()
+        assert time.monotonic() - t0 < 5
+    assert source.states == asked

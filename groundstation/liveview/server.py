@@ -1,17 +1,19 @@
 """The live view: a web page that shows the swarm while it flies, with land and emergency-stop buttons.
 
-``LiveView`` serves ``static/`` (no build step, nothing from the internet) and the state of one *source* on
-its own thread with its own asyncio loop (aiohttp)::
+``LiveView`` serves ``static/`` (no build step, nothing from the internet) and the state of one *source*. The
+web server (aiohttp, the JSON encoding, every tab) runs in a process of its own (``webserver``); the ground
+station keeps one thread that builds the state and one that runs the page's controls::
 
     view = LiveView(port=8765).start()     # binds now: a taken port is a ViewError before anything flies
     view.attach(SessionSource(session, scene(fence, anchors, spec), metrics=metrics.live))
     ...                                    # fly
     view.stop()
 
-The source's ``state()`` is called on the view's thread, ``rate`` times a second, and the same JSON is pushed
-over the WebSocket ``/ws`` to every open tab (a slow tab skips frames; it never holds up the others) and
-answered to ``GET /api/state``. ``SessionSource.state`` copies what it shows with ``FlightSession.snapshot``,
-which takes no drone's lock: the control path never waits on the view.
+The source's ``state()`` is called on the view's thread, ``rate`` times a second, and handed to the server's
+process, which encodes it once and pushes it over the WebSocket ``/ws`` to every open tab (a slow tab skips
+frames; it never holds up the others) and answers it to ``GET /api/state``. ``SessionSource.state`` copies what
+it shows with ``FlightSession.snapshot``, which takes no drone's lock: the control path never waits on the view,
+and the number of tabs costs the ground station's interpreter nothing.
 
 State (``GET /api/state``; every WebSocket message is one such object)::
 
@@ -31,11 +33,8 @@ a replay ``/api/replay`` with ``{"pause": bool, "seek": s, "speed": x}``.
 """
 from __future__ import annotations
 
-import asyncio
 import errno
-import json
 import logging
-import math
 import socket
 import threading
 import time
@@ -48,6 +47,8 @@ log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 8765
 """The port of ``--view`` given without one."""
+START_TIMEOUT_S = 60.0
+"""How long the web server's process may take to import and bind [s] (seconds on a cold, busy machine)."""
 STATIC = Path(__file__).parent / "static"
 
 
@@ -163,7 +164,13 @@ class _Waiting:
 
 
 class LiveView:
-    """The live-view server (see the module docstring). ``port=0`` picks a free port (tests)."""
+    """The live-view server (see the module docstring). ``port=0`` picks a free port (tests).
+
+    In the ground station's interpreter it costs one thread that builds the source's state ``rate`` times a
+    second and hands it to the web server's process over a pipe (a pickle, no JSON), and one that runs the
+    page's controls; the web server (``webserver``: aiohttp, the encoding, every tab) is a process of its own.
+    Measured before the move (the server on a thread of the ground station): one tab cost the interpreter about
+    4 % of a core, and every further tab more."""
 
     def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", rate: float = 20.0,
                  option: str = "--view") -> None:
@@ -172,16 +179,14 @@ class LiveView:
         self.host, self.port, self.rate, self.option = host, port, rate, option
         self.source: Source = _Waiting()
         self.frames = 0
-        """State messages computed (each pushed to every open WebSocket)."""
-        self._latest: str = json.dumps(self.source.state())
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._stopped: asyncio.Event | None = None
-        self._boxes: dict = {}
-        """Open WebSocket -> [latest text, asyncio.Event]: one mailbox per tab."""
-        self._sock: socket.socket | None = None
+        """States handed to the web server (each pushed to every open WebSocket)."""
+        self._last: dict[str, Any] | None = None
+        self._clients = 0
+        self._proc = None
+        self._conn = None
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
 
     @property
     def url(self) -> str:
@@ -190,7 +195,7 @@ class LiveView:
     @property
     def clients(self) -> int:
         """Open WebSockets (browser tabs)."""
-        return len(self._boxes)
+        return self._clients
 
     def attach(self, source: Source) -> None:
         """Show ``source`` from now on (the view starts with a "waiting" page)."""
@@ -202,11 +207,12 @@ class LiveView:
             last = self.source.state()
         except Exception:  # a source that cannot answer any more: the last state pushed
             log.exception("live view: the state source failed")
-            last = self._last_state()
+            last = self._last
         if last is not None:
+            last = dict(last)
             last["controls"] = []
             last["mission"] = False
-            frozen = dict(last)
+            frozen = last
 
             class _Frozen(_Waiting):
                 def state(self) -> dict[str, Any]:
@@ -216,28 +222,61 @@ class LiveView:
     # -- life cycle -------------------------------------------------------------------------------
 
     def start(self) -> "LiveView":
-        """Bind (``ViewError`` if the port is taken), then serve on a thread of its own."""
-        self._sock = bind(self.host, self.port, self.option)
-        self.port = self._sock.getsockname()[1]
-        self._thread = threading.Thread(target=self._run, name="LiveView", daemon=True)
-        self._thread.start()
-        self._ready.wait(10.0)
-        if self._error is not None:
-            raise ViewError(f"{self.option}: the live view did not start: {self._error}")
+        """Start the web server's process; it binds ``host:port`` first (``ViewError`` if the port is taken)."""
+        import multiprocessing as mp
+
+        from groundstation.liveview import webserver
+        ctx = mp.get_context("spawn")  # no fork of the ground station's threads
+        conn, child = ctx.Pipe()
+        self._proc = ctx.Process(target=webserver.serve, name="swarm-liveview", daemon=True,
+                                 args=(child, self.host, self.port, self.option, str(STATIC), _Waiting().state()))
+        self._proc.start()
+        child.close()
+        self._conn = conn
+        try:
+            if not conn.poll(START_TIMEOUT_S):
+                raise ViewError(f"{self.option}: the live view's server did not start in {START_TIMEOUT_S:.0f} s")
+            kind, payload = conn.recv()
+        except (EOFError, OSError):
+            kind, payload = "error", f"{self.option}: the live view's server exited at start-up " \
+                                     f"(exit code {self._proc.exitcode})"
+        except ViewError as exc:
+            kind, payload = "error", str(exc)
+        if kind != "ready":
+            self._end_process()
+            raise ViewError(payload)
+        self.port = int(payload)
+        self._stop.clear()
+        self._threads = [threading.Thread(target=self._feed, name="LiveView", daemon=True),
+                         threading.Thread(target=self._serve_controls, name="LiveViewControls", daemon=True)]
+        for t in self._threads:
+            t.start()
         log.info("live view at %s", self.url)
         return self
 
     def stop(self) -> None:
-        loop, stopped = self._loop, self._stopped
-        if loop is not None and stopped is not None and not loop.is_closed():
-            try:
-                loop.call_soon_threadsafe(stopped.set)
-            except RuntimeError:  # the loop closed meanwhile
-                pass
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-        if self._sock is not None:
-            self._sock.close()
+        self._stop.set()
+        if self._conn is not None:
+            self._send(("stop", None))
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(timeout=5.0)
+        self._threads = []
+        self._end_process()
+
+    def _end_process(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            proc.join(timeout=5.0)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(timeout=2.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout=2.0)
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
 
     def __enter__(self) -> "LiveView":
         return self.start()
@@ -245,146 +284,69 @@ class LiveView:
     def __exit__(self, *exc) -> None:
         self.stop()
 
-    # -- the view's thread ------------------------------------------------------------------------
+    # -- the ground station's side ----------------------------------------------------------------
 
-    def _run(self) -> None:
-        loop = asyncio.new_event_loop()
-        self._loop = loop
+    def _send(self, msg: tuple) -> bool:
         try:
-            loop.run_until_complete(self._serve())
-        except BaseException as exc:  # reported to start(); after that logged: the flight goes on without a view
-            self._error = exc
-            log.exception("live view stopped")
-        finally:
-            self._ready.set()
-            try:  # the controls' worker threads (run_in_executor) end with the loop
-                loop.run_until_complete(loop.shutdown_default_executor())
-            finally:
-                loop.close()
+            with self._send_lock:
+                self._conn.send(msg)
+            return True
+        except (OSError, ValueError, AttributeError):  # the server is gone (or stopping)
+            return False
 
-    async def _serve(self) -> None:
-        from aiohttp import web
-
-        self._stopped = asyncio.Event()
-        app = web.Application()
-        app.router.add_get("/", self._index)
-        app.router.add_get("/api/state", self._get_state)
-        app.router.add_get("/ws", self._ws)
-        app.router.add_post("/api/land_all", self._post("land_all"))
-        app.router.add_post("/api/land/{drone}", self._post("land"))
-        app.router.add_post("/api/emergency_stop", self._post("emergency_stop"))
-        app.router.add_post("/api/replay", self._post("replay"))
-        app.router.add_static("/static/", STATIC, show_index=False)
-        runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
-        await runner.setup()
-        site = web.SockSite(runner, self._sock)
-        await site.start()
-        pusher = asyncio.ensure_future(self._push())
-        self._ready.set()
-        try:
-            await self._stopped.wait()
-        finally:
-            pusher.cancel()
-            for ws in list(self._boxes):
-                await ws.close()
-            await runner.cleanup()
-
-    def _last_state(self) -> dict[str, Any] | None:
-        try:
-            return json.loads(self._latest)
-        except ValueError:
-            return None
-
-    def _compute(self) -> str:
+    def _state(self) -> dict[str, Any] | None:
         try:
             state = self.source.state()
         except Exception:  # a failing source must not stop the view (nor the flight): keep the last state
             log.exception("live view: the state source failed")
-            return self._latest
+            return None
         state.setdefault("wall_time", time.time())
-        try:
-            text = json.dumps(state, separators=(",", ":"), allow_nan=False)
-        except ValueError:  # NaN or inf somewhere: strict JSON has neither
-            text = json.dumps(json_safe(state), separators=(",", ":"), default=str)
-        self.frames += 1
-        self._latest = text
-        return text
+        return state
 
-    async def _push(self) -> None:
+    def _feed(self) -> None:
+        """The source's state to the web server, ``rate`` times a second."""
         period = 1.0 / self.rate
         next_t = time.monotonic()
-        while True:
-            text = self._compute()
-            for box in list(self._boxes.values()):
-                box[0] = text
-                box[1].set()
+        while not self._stop.is_set():
+            state = self._state()
+            if state is not None:
+                if not self._send(("state", state)):
+                    return
+                self._last = state
+                self.frames += 1
             next_t += period
             delay = next_t - time.monotonic()
             if delay < 0:
                 next_t, delay = time.monotonic(), 0.0
-            await asyncio.sleep(delay)
+            self._stop.wait(delay)
 
-    # -- handlers ---------------------------------------------------------------------------------
+    def _serve_controls(self) -> None:
+        """Run the page's controls (POSTs) through the source, one at a time, and answer them."""
+        conn = self._conn
+        while not self._stop.is_set():
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                return  # the server is gone
+            if msg[0] == "clients":
+                self._clients = int(msg[1])
+            elif msg[0] == "control":
+                _, key, name, args = msg
+                status, body = self._control(name, args)
+                self._send(("reply", key, status, body))
 
-    async def _index(self, request):
-        from aiohttp import web
-        return web.FileResponse(STATIC / "index.html")
-
-    async def _get_state(self, request):
-        from aiohttp import web
-        return web.Response(text=self._latest, content_type="application/json")
-
-    async def _ws(self, request):
-        from aiohttp import WSMsgType, web
-        ws = web.WebSocketResponse(heartbeat=10.0)
-        await ws.prepare(request)
-        box: list = [self._latest, asyncio.Event()]
-        box[1].set()
-        self._boxes[ws] = box
-
-        async def sender() -> None:
-            # the latest state only: a slow tab skips frames and never delays another tab
-            while not ws.closed:
-                await box[1].wait()
-                box[1].clear()
-                await ws.send_str(box[0])
-
-        task = asyncio.ensure_future(sender())
+    def _control(self, name: str, args: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+        source = self.source
+        if name not in source.controls:
+            why = "no flight yet" if isinstance(source, _Waiting) and not source.controls else \
+                f"this view's controls are {', '.join(source.controls) or 'none (the flight is over)'}"
+            return 409, {"ok": False, "error": f"{name}: {why}"}
         try:
-            async for msg in ws:  # the page sends nothing the view acts on (controls are POSTs)
-                if msg.type == WSMsgType.ERROR:
-                    break
-        finally:
-            task.cancel()
-            self._boxes.pop(ws, None)
-        return ws
-
-    def _post(self, name: str):
-        from aiohttp import web
-
-        async def handler(request):
-            args: dict[str, Any] = {}
-            if request.can_read_body:
-                try:
-                    body = await request.json()
-                except ValueError:
-                    return web.json_response({"ok": False, "error": "the body is not JSON"}, status=400)
-                if not isinstance(body, dict):
-                    return web.json_response({"ok": False, "error": "the body must be a JSON object"}, status=400)
-                args.update(body)
-            if "drone" in request.match_info:
-                args["drone"] = request.match_info["drone"]
-            source = self.source
-            if name not in source.controls:
-                why = "no flight yet" if isinstance(source, _Waiting) and not source.controls else \
-                    f"this view's controls are {', '.join(source.controls) or 'none (the flight is over)'}"
-                return web.json_response({"ok": False, "error": f"{name}: {why}"}, status=409)
-            loop = asyncio.get_running_loop()
-            try:  # the session's methods send to the links: off the view's loop
-                out = await loop.run_in_executor(None, source.control, name, args)
-            except ControlRefused as exc:
-                return web.json_response({"ok": False, "error": str(exc)}, status=400)
-            log.warning("live view: %s %s", name, args.get("drone", ""))
-            return web.json_response(json_safe(out))
-
-        return handler
+            out = source.control(name, args)
+        except ControlRefused as exc:
+            return 400, {"ok": False, "error": str(exc)}
+        except Exception as exc:  # the page gets the error; the flight goes on
+            log.exception("live view: control %s failed", name)
+            return 500, {"ok": False, "error": f"{name}: {type(exc).__name__}: {exc}"}
+        log.warning("live view: %s %s", name, args.get("drone", ""))
+        return 200, json_safe(out)
