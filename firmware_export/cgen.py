@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from firmware_export.cgen_avoid import avoid_defines
 from firmware_export.mlp_graph import ActorModel, CExportError, ModelShapeError
 from firmware_export.cgen_q7 import (INT8_MAX_INPUTS, QBLOCK, QGROUP, _Q15_TEXT, _asm, _kernel_q7,  # noqa: F401
                                      _pad, _store, pack_q7)
@@ -136,6 +137,8 @@ def header_text(model: ActorModel, quant: str, tanh: str, weights_in: str = DEFA
         f"#define {SPEC_PREFIX}_N_AGENTS {spec.team.n_agents} /* ordered pursuers, scouts, evaders */",
         "",
         *radio_msg_text(spec),
+        "",
+        *avoid_defines(spec, role),
         "",
         "/* On the Cortex-M4, call once before the first swarm_policy_act (e.g. in appMain): with WEIGHTS_IN",
         " * \"ram\" or \"ccm\" it copies the weight tables from flash into SRAM or CCM RAM; with \"flash\" it does",

@@ -250,6 +250,115 @@ void swarm_build_observation(const swarm_world_t *w, uint32_t now_ms, float obs[
 #endif
 }
 
+/* -------------------------------------------------------------------------------------- avoidance */
+
+#if SWARM_AVOID_ENABLED
+/* Not NaN and not infinite, tested on the bits (no compiler flag can fold it away). */
+static int finite_bits(float v)
+{
+    uint32_t bits;
+    memcpy(&bits, &v, sizeof(bits));
+    return (bits & 0x7f800000u) != 0x7f800000u;
+}
+
+/* The layout swarm_avoid reads is the one the observation encoder writes (both generated from the spec). */
+typedef char swarm_check_avoid_layout[(SWARM_AVOID_SELF_POS == SWARM_OBS_SELF_POS_START
+    && SWARM_AVOID_OBSTACLES == SWARM_OBS_OBSTACLES_START && SWARM_AVOID_N_OBSTACLES == SWARM_OBS_OBSTACLES_ROWS
+    && SWARM_AVOID_OBSTACLE_COLS == SWARM_OBS_OBSTACLES_COLS && SWARM_AVOID_MATES == SWARM_OBS_TEAMMATES_START
+    && SWARM_AVOID_N_MATES == SWARM_OBS_TEAMMATES_ROWS && SWARM_AVOID_MATE_COLS == SWARM_OBS_TEAMMATES_COLS
+    && SWARM_OBS_TEAMMATES_VALID == SWARM_AVOID_MATE_COLS - 1 && SWARM_OBS_OBSTACLES_RADIUS == 2) ? 1 : -1];
+
+#define SWARM_AVOID_N_CON (SWARM_AVOID_N_MATES + 4 + SWARM_AVOID_N_OBSTACLES)
+
+/* runtime.avoidance._limit: the approach speed [m/s] allowed at `gap` from a surface. */
+static float avoid_limit(float gap, float margin)
+{
+    const float g = gap - margin;
+    float brake, step;
+    if (!(g > 0.0f)) return 0.0f;
+    brake = sqrtf(2.0f * SWARM_AVOID_BRAKING * g);
+    step = g / SWARM_AVOID_DT;
+    return step < brake ? step : brake;
+}
+#endif
+
+/* runtime.avoidance.avoid_rows for one row: the same constraints in the same order (teammates, walls +x -x
+ * +y -y, obstacles), the same cyclic projection and the same final speed limit, in float. The action is
+ * written back only when the layer changed the velocity, so a safe action stays bit for bit what the policy
+ * returned (as in Python, whose float64 round trip act * v / v rounds back to the float32 action). */
+void swarm_avoid(const float obs[SWARM_POLICY_OBS_DIM], float act[SWARM_POLICY_ACT_DIM])
+{
+#if SWARM_AVOID_ENABLED
+    float nx[SWARM_AVOID_N_CON], ny[SWARM_AVOID_N_CON], lim[SWARM_AVOID_N_CON];
+    uint8_t use[SWARM_AVOID_N_CON];
+    float x, y, vx, vy, speed;
+    int i, k, c = 0, changed = 0;
+    for (i = 0; i < SWARM_POLICY_OBS_DIM; ++i) {
+        if (!finite_bits(obs[i])) return;
+    }
+    if (!finite_bits(act[0]) || !finite_bits(act[1])) return;
+    x = obs[SWARM_AVOID_SELF_POS];
+    y = obs[SWARM_AVOID_SELF_POS + 1];
+    for (k = 0; k < SWARM_AVOID_N_MATES; ++k, ++c) {  /* teammates: half the budget each */
+        const float *m = obs + SWARM_AVOID_MATES + SWARM_AVOID_MATE_COLS * k;
+        const float d = sqrtf(m[0] * m[0] + m[1] * m[1]);
+        use[c] = m[SWARM_AVOID_MATE_COLS - 1] > 0.5f && d > 1e-9f;
+        if (use[c]) {
+            nx[c] = -m[0] / d;
+            ny[c] = -m[1] / d;
+            lim[c] = 0.5f * avoid_limit(d - SWARM_AVOID_OWN_RADIUS - SWARM_AVOID_MATE_RADIUS,
+                                        SWARM_AVOID_MATE_MARGIN);
+        }
+    }
+    for (k = 0; k < 4; ++k, ++c) {  /* walls: +x, -x, +y, -y */
+        const float s = (k % 2 == 0) ? 1.0f : -1.0f;
+        const float p = k < 2 ? x : y;
+        nx[c] = k < 2 ? -s : 0.0f;
+        ny[c] = k < 2 ? 0.0f : -s;
+        lim[c] = avoid_limit(SWARM_AVOID_HALF_WIDTH - SWARM_AVOID_OWN_RADIUS - s * p, SWARM_AVOID_OBS_MARGIN);
+        use[c] = 1;
+    }
+    for (k = 0; k < SWARM_AVOID_N_OBSTACLES; ++k, ++c) {
+        const float *o = obs + SWARM_AVOID_OBSTACLES + SWARM_AVOID_OBSTACLE_COLS * k;
+        const float d = sqrtf(o[0] * o[0] + o[1] * o[1]);
+        use[c] = o[2] > 0.0f && d > 1e-9f;  /* radius 0: an empty slot */
+        if (use[c]) {
+            nx[c] = -o[0] / d;
+            ny[c] = -o[1] / d;
+            lim[c] = avoid_limit(d - o[2] - SWARM_AVOID_OWN_RADIUS, SWARM_AVOID_OBS_MARGIN);
+        }
+    }
+    vx = act[0] * SWARM_AVOID_MAX_SPEED;
+    vy = act[1] * SWARM_AVOID_MAX_SPEED;
+    for (i = 0; i < SWARM_AVOID_ROUNDS; ++i) {
+        for (k = 0; k < SWARM_AVOID_N_CON; ++k) {
+            float short_by;
+            if (!use[k]) continue;
+            short_by = -lim[k] - (vx * nx[k] + vy * ny[k]);  /* > 0: approaching faster than allowed */
+            if (short_by > 0.0f) {
+                vx += short_by * nx[k];
+                vy += short_by * ny[k];
+                changed = 1;
+            }
+        }
+    }
+    speed = sqrtf(vx * vx + vy * vy);
+    if (speed > SWARM_AVOID_MAX_SPEED) {
+        const float scale = SWARM_AVOID_MAX_SPEED / speed;
+        vx *= scale;
+        vy *= scale;
+        changed = 1;
+    }
+    if (changed) {
+        act[0] = vx / SWARM_AVOID_MAX_SPEED;
+        act[1] = vy / SWARM_AVOID_MAX_SPEED;
+    }
+#else
+    (void)obs;
+    (void)act;
+#endif
+}
+
 /* ------------------------------------------------------------------------------- command, safety */
 
 void swarm_action_to_velocity(const float act[SWARM_POLICY_ACT_DIM], float x, float y, float v[2])

@@ -1,7 +1,8 @@
 /* The flight app's logic, free of firmware calls so that it builds and is tested on any host:
  * the table of agents heard over the radio, the observation encoder (the C twin of
- * runtime/observation.py, laid out by the generated policy.h), radio message packing, the action to
- * velocity conversion and the dead-man timer. swarm_app.c is the thin firmware shell around it. */
+ * runtime/observation.py, laid out by the generated policy.h), radio message packing, the avoidance layer
+ * (the C twin of runtime/avoidance.py, its numbers generated into policy.h), the action to velocity
+ * conversion and the dead-man timer. swarm_app.c is the thin firmware shell around it. */
 #ifndef SWARM_LOGIC_H
 #define SWARM_LOGIC_H
 
@@ -59,6 +60,12 @@ int swarm_msg_receive(swarm_world_t *w, const uint8_t *buf, uint8_t size, uint32
 
 /* The observation of agent w->self at now_ms, as runtime.observation.encode_observations builds it. */
 void swarm_build_observation(const swarm_world_t *w, uint32_t now_ms, float obs[SWARM_POLICY_OBS_DIM]);
+
+/* The spec's avoidance layer on the policy's action, in place (runtime.avoidance.avoid_rows for one row, in
+ * float): the speed towards every obstacle, wall and teammate of obs limited so that the drone can stop
+ * before them. Leaves act as it is when SWARM_AVOID_ENABLED is 0, when obs holds a non-finite value, or when act
+ * does (swarm_action_to_velocity turns that into a stop). */
+void swarm_avoid(const float obs[SWARM_POLICY_OBS_DIM], float act[SWARM_POLICY_ACT_DIM]);
 
 /* Action in [-1, 1]^2 to a velocity [m/s] with the world's norm limit, and no motion into a nearby wall. */
 void swarm_action_to_velocity(const float act[SWARM_POLICY_ACT_DIM], float x, float y, float v[2]);

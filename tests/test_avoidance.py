@@ -1,0 +1,465 @@
+"""The learned actors' avoidance layer (runtime.avoidance): what it leaves alone, what it guarantees, that a single
+constraint is an exact projection, that a team flown straight at its goals through it never touches an obstacle
+or a teammate, that it is off by default without changing any spec's hash, and that OnnxPolicy applies it.
+
+``avoidance_cases`` (observations within the spec's ranges, with hazards placed near the drone) is shared with
+tests/test_avoidance_c.py, which holds the C twin to the Python kernel on them."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from runtime.avoidance import (P_MATE_RADIUS, P_OWN_RADIUS, Avoidance, avoid_agents, avoid_rows,
+                               role_tables)
+from runtime.observation import encode_observations, new_knowledge, update_knowledge
+from runtime.spec import Role, SwarmSpec
+from runtime.world import World
+
+ROOT = Path(__file__).resolve().parent.parent
+ON = SwarmSpec.from_dict({"avoidance": {"enabled": True}})
+
+
+def spec_with(**avoidance) -> SwarmSpec:
+    return SwarmSpec.from_dict({"avoidance": {"enabled": True, **avoidance}})
+
+
+# --------------------------------------------------------------------------------------------------
+# cases and an independent statement of the constraints
+
+
+def _unit(rng: np.random.Generator, n: int) -> np.ndarray:
+    a = rng.uniform(0.0, 2.0 * math.pi, n)
+    return np.stack([np.cos(a), np.sin(a)], axis=-1)
+
+
+def avoidance_cases(spec: SwarmSpec, role: Role, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` float32 observations of ``role`` within ``spec.layout(role).bounds()`` and actions in [-1, 1]^2.
+
+    A quarter each: uniform; a wall within 0.3 m; an obstacle's surface within [-6 cm, 40 cm] of the body
+    (slightly inside included); a valid teammate within [-3 cm, 50 cm] of touching. Around a third of the
+    obstacle slots are empty (radius 0, half of them with junk offsets), a third of the teammate slots invalid
+    (half zero as the encoder writes them, half junk), a few teammates coincide with the drone (d = 0) or carry
+    a fractional valid flag. In the near cases the action points at the hazard half of the time."""
+    rng = np.random.default_rng(seed)
+    lay = spec.layout(role)
+    lo, hi = map(np.asarray, lay.bounds())
+    obs = rng.uniform(lo, hi, (n, lay.dim))
+    act = rng.uniform(-1.0, 1.0, (n, 2))
+    params, _ = role_tables(spec, role)
+    own_r, mate_r = params[P_OWN_RADIUS], params[P_MATE_RADIUS]
+    hw = spec.arena.half_width
+    sp = lay["self_pos"].start
+    kind = rng.integers(0, 4, n)
+    aim = rng.random(n) < 0.5
+
+    ob = lay["obstacles"]
+    obv = obs[:, ob.slice].reshape(n, ob.rows, 3)
+    if ob.rows:
+        empty = rng.random((n, ob.rows)) < 0.3
+        obv[..., 2][empty] = 0.0
+        obv[..., :2][empty & (rng.random((n, ob.rows)) < 0.5)] = 0.0
+        near = kind == 2
+        r = rng.uniform(spec.arena.obstacle_radius_min, spec.arena.obstacle_radius_max, n)
+        u = _unit(rng, n)
+        d = r + own_r + rng.uniform(-0.06, 0.4, n)
+        obv[near, 0, :2] = (u * d[:, None])[near]
+        obv[near, 0, 2] = r[near]
+        act[near & aim] = (u * rng.uniform(0.3, 1.0, (n, 1)))[near & aim]
+    obs[:, ob.slice] = obv.reshape(n, -1)
+
+    tm = lay["teammates"]
+    tmv = obs[:, tm.slice].reshape(n, tm.rows, 5)
+    if tm.rows:
+        valid = rng.random((n, tm.rows)) < 0.67
+        tmv[..., 4] = valid
+        zero = ~valid & (rng.random((n, tm.rows)) < 0.5)
+        tmv[zero] = 0.0
+        odd = rng.random((n, tm.rows)) < 0.02
+        tmv[..., 4][odd] = rng.uniform(0.3, 0.7, int(odd.sum()))
+        near = kind == 3
+        u = _unit(rng, n)
+        d = own_r + mate_r + rng.uniform(-0.03, 0.5, n)
+        tmv[near, 0, :2] = (u * d[:, None])[near]
+        tmv[near, 0, 4] = 1.0
+        same = near & (rng.random(n) < 0.02)
+        tmv[same, 0, :2] = 0.0
+        act[near & aim] = (u * rng.uniform(0.3, 1.0, (n, 1)))[near & aim]
+    obs[:, tm.slice] = tmv.reshape(n, -1)
+
+    walls = kind == 1
+    axis = rng.integers(0, 2, n)
+    side = rng.choice([-1.0, 1.0], n)
+    gap = rng.uniform(0.0, 0.3, n)
+    rows = np.nonzero(walls)[0]
+    obs[rows, sp + axis[rows]] = side[rows] * (hw - gap[rows])
+    towards = np.zeros((n, 2))
+    towards[np.arange(n), axis] = side * rng.uniform(0.3, 1.0, n)
+    act[walls & aim] = towards[walls & aim]
+    obs = np.clip(obs, lo, hi)
+    return obs.astype(np.float32), act.astype(np.float32)
+
+
+def _limit(g: float, braking: float, dt: float) -> float:
+    return 0.0 if g <= 0.0 else min(math.sqrt(2.0 * braking * g), g / dt)
+
+
+def constraints(spec: SwarmSpec, role: Role, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The layer's half-planes for one observation, from the spec's own fields (not the kernel's tables): unit
+    normals pointing away from each hazard ``[m, 2]``, allowed approach speeds ``[m]`` and which ``[m]`` are
+    obstacles or walls (True) rather than teammates. A velocity ``v`` is safe when ``n . v >= -limit``."""
+    av, lay = spec.avoidance, spec.layout(role)
+    own = spec.role(role).radius
+    mates = [Role.EVADER] if role is Role.EVADER else [r for r in (Role.PURSUER, Role.SCOUT)
+                                                       if len(spec.team.indices(r))]
+    mate_r = max(spec.role(r).radius for r in mates)
+    dt, b, hw = spec.timing.control_period, av.braking, spec.arena.half_width
+    o = np.asarray(obs, dtype=np.float64)
+    x, y = o[lay["self_pos"].slice]
+    normals, limits, hard = [], [], []
+    for dx, dy, _, _, valid in o[lay["teammates"].slice].reshape(-1, 5):
+        d = math.hypot(dx, dy)
+        if valid > 0.5 and d > 1e-9:
+            normals.append((-dx / d, -dy / d))
+            limits.append(0.5 * _limit(d - own - mate_r - av.teammate_margin, b, dt))
+            hard.append(False)
+    for n, gap in (((-1, 0), hw - own - x), ((1, 0), hw - own + x), ((0, -1), hw - own - y), ((0, 1), hw - own + y)):
+        normals.append(n)
+        limits.append(_limit(gap - av.obstacle_margin, b, dt))
+        hard.append(True)
+    for dx, dy, r in o[lay["obstacles"].slice].reshape(-1, 3):
+        d = math.hypot(dx, dy)
+        if r > 0 and d > 1e-9:
+            normals.append((-dx / d, -dy / d))
+            limits.append(_limit(d - r - own - av.obstacle_margin, b, dt))
+            hard.append(True)
+    return np.array(normals, dtype=np.float64), np.array(limits), np.array(hard)
+
+
+def violation(v: np.ndarray, normals: np.ndarray, limits: np.ndarray) -> float:
+    """How far [m/s] the velocity ``v`` is beyond its worst half-plane (<= 0: within all of them)."""
+    return float(np.max(-(normals @ v) - limits))
+
+
+def _apply(spec: SwarmSpec, role: Role, obs: np.ndarray, act: np.ndarray) -> np.ndarray:
+    out = np.array(act, copy=True)
+    params, layout = role_tables(spec, role)
+    avoid_rows(np.ascontiguousarray(obs), out, params, layout)
+    return out
+
+
+ROLES = [Role.PURSUER, Role.SCOUT, Role.EVADER]
+
+
+# --------------------------------------------------------------------------------------------------
+# (a) safe velocities pass unchanged
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_a_velocity_within_every_constraint_is_returned_unchanged(role):
+    obs, act = avoidance_cases(ON, role, 4000, seed=1)
+    vmax = ON.role(role).max_speed
+    safe = np.array([violation(a.astype(np.float64) * vmax, *constraints(ON, role, o)[:2]) < -1e-6
+                     and np.hypot(*a.astype(np.float64)) <= 1.0 for o, a in zip(obs, act)])
+    assert safe.sum() > 800 and (~safe).sum() > 800  # both kinds are exercised
+    out = _apply(ON, role, obs, act)  # float32 actions, as every policy returns them
+    np.testing.assert_array_equal(out[safe], act[safe])
+    assert (out[~safe] != act[~safe]).any(axis=1).mean() > 0.9
+    # float64 actions: the round trip through the velocity costs at most one rounding
+    out64 = _apply(ON, role, obs.astype(np.float64), act.astype(np.float64))
+    np.testing.assert_allclose(out64[safe], act[safe].astype(np.float64), rtol=5e-16, atol=0)
+
+
+def test_an_open_arena_changes_nothing():
+    lay = ON.layout(Role.PURSUER)
+    obs = np.zeros((1, lay.dim), np.float32)  # at the centre; empty obstacle and teammate slots
+    act = np.array([[0.6, -0.7]], np.float32)
+    assert np.array_equal(_apply(ON, Role.PURSUER, obs, act), act)
+    obs[0, lay["obstacles"].start:lay["obstacles"].start + 3] = (2.0, 0.0, 0.3)  # 1.6 m away
+    assert np.array_equal(_apply(ON, Role.PURSUER, obs, act), act)
+
+
+def test_actions_beyond_the_unit_disc_are_scaled_to_the_max_speed():
+    lay = ON.layout(Role.PURSUER)
+    out = _apply(ON, Role.PURSUER, np.zeros((1, lay.dim)), np.array([[1.0, 1.0]]))
+    np.testing.assert_allclose(out, [[math.sqrt(0.5), math.sqrt(0.5)]], rtol=1e-15)
+
+
+# --------------------------------------------------------------------------------------------------
+# (b) enough rounds satisfy every half-plane
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_many_rounds_satisfy_every_constraint_within_1e_9(role):
+    """All half-planes contain v = 0 (every limit is >= 0), so their intersection is never empty: the cyclic
+    projection converges into it, and the final scaling towards 0 stays inside."""
+    spec = spec_with(rounds=2000)
+    obs, act = avoidance_cases(spec, role, 1500, seed=2)
+    out = _apply(spec, role, obs.astype(np.float64), act.astype(np.float64))
+    vmax = spec.role(role).max_speed
+    worst = max(violation(a * vmax, *constraints(spec, role, o)[:2]) for o, a in zip(obs, out))
+    assert np.all(np.hypot(out[:, 0], out[:, 1]) <= 1.0 + 1e-12)
+    assert worst <= 1e-9, worst
+    assert np.isfinite(out).all()
+
+
+def _wedge(angle_deg: float) -> np.ndarray:
+    """A pursuer 2.5 cm (inside the 4 cm margin) from the +y wall and from an obstacle's surface below it, the
+    obstacle's centre at ``angle_deg`` from +x: a state the world allows (obstacles keep 0.2 m from the walls,
+    less than a 0.15 m drone plus both margins)."""
+    lay = ON.layout(Role.PURSUER)
+    obs = np.zeros(lay.dim)
+    obs[lay["self_pos"].slice] = (1.0, ON.arena.half_width - 0.075 - 0.025)
+    r, a = 0.3, math.radians(angle_deg)
+    o = lay["obstacles"].start
+    obs[o:o + 3] = ((r + 0.075 + 0.025) * math.cos(a), (r + 0.075 + 0.025) * math.sin(a), r)
+    return obs
+
+
+def test_many_rounds_resolve_a_wall_obstacle_wedge():
+    spec = spec_with(rounds=2000)
+    for angle in (-60.0, -70.0, -80.0):
+        obs = _wedge(angle)
+        out = _apply(spec, Role.PURSUER, obs[None], np.array([[0.64, 0.0]]))[0]
+        assert violation(out, *constraints(spec, Role.PURSUER, obs)[:2]) <= 1e-9
+
+
+@pytest.mark.xfail(strict=True, reason="runtime.avoidance defect (reported to the lead engineer): 3 rounds of cyclic "
+                   "projection do not converge in a narrow wedge of two zero-limit constraints; the obstacle, "
+                   "projected last, holds and the wall is left overrun by 0.10-0.16 m/s (2000 rounds: < 1e-9)")
+@pytest.mark.parametrize("angle", [-60.0, -70.0, -80.0])
+def test_the_spec_rounds_keep_every_wall_and_obstacle_constraint_in_a_wedge(angle):
+    """Sliding along the +y wall (action (0.64, 0)) into the wedge between the wall and an obstacle: the layer
+    must not command any speed into the wall or the obstacle, both within their margins."""
+    obs = _wedge(angle)
+    out = _apply(ON, Role.PURSUER, obs[None], np.array([[0.64, 0.0]]))[0]
+    assert violation(out, *constraints(ON, Role.PURSUER, obs)[:2]) <= 1e-9
+
+
+# --------------------------------------------------------------------------------------------------
+# (c) one active constraint: the Euclidean projection
+
+
+def _single(kind: str, rng: np.random.Generator, spec: SwarmSpec) -> tuple[np.ndarray, np.ndarray]:
+    """A pursuer near the centre with exactly one hazard close (the walls 2 m away allow more than any speed)."""
+    lay = spec.layout(Role.PURSUER)
+    obs = np.zeros(lay.dim)
+    obs[lay["self_pos"].slice] = rng.uniform(-0.8, 0.8, 2)
+    u = _unit(rng, 1)[0]
+    if kind == "obstacle":
+        r = rng.uniform(0.25, 0.45)
+        o = lay["obstacles"].start + 3 * int(rng.integers(lay["obstacles"].rows))
+        obs[o:o + 2] = u * (r + 0.075 + rng.uniform(0.0, 0.3))
+        obs[o + 2] = r
+    elif kind == "teammate":
+        o = lay["teammates"].start + 5 * int(rng.integers(lay["teammates"].rows))
+        obs[o:o + 2] = u * (0.15 + rng.uniform(0.0, 0.3))
+        obs[o + 2:o + 4] = rng.uniform(-1, 1, 2)
+        obs[o + 4] = 1.0
+    else:  # a wall: the drone 0 to 30 cm from the +x, -x, +y or -y wall, away from the others
+        w = int(rng.integers(4))
+        obs[lay["self_pos"].slice] = rng.uniform(-0.8, 0.8, 2)
+        obs[lay["self_pos"].start + w // 2] = (1 if w % 2 == 0 else -1) * (3.0 - 0.075 - rng.uniform(0.0, 0.3))
+    a = _unit(rng, 1)[0] * rng.uniform(0.2, 1.0)
+    return obs, a
+
+
+@pytest.mark.parametrize("kind", ["obstacle", "wall", "teammate"])
+def test_a_single_active_constraint_is_the_exact_projection_onto_its_half_plane(kind):
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng({"obstacle": 4, "wall": 5, "teammate": 6}[kind])
+    active = 0
+    for i in range(300):
+        obs, a = _single(kind, rng, ON)
+        n, lim, hard = constraints(ON, Role.PURSUER, obs)
+        over = -(n @ a) - lim  # vmax = 1 for a pursuer
+        assert (over > 0).sum() <= 1  # at most this one hazard is binding
+        # the closed form: the point of {v : n . v >= -lim} nearest to a
+        j = int(np.argmax(over))
+        want = a + max(0.0, over[j]) * n[j]
+        got = _apply(ON, Role.PURSUER, obs[None], a[None])[0]
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        if over[j] > 0:
+            active += 1
+            assert abs(n[j] @ got + lim[j]) <= 1e-12  # on the boundary
+            if i % 10 == 0:  # and what a generic solver finds for min |v - a|^2 subject to it
+                res = minimize(lambda v: ((v - a) ** 2).sum(), a, jac=lambda v: 2 * (v - a), method="SLSQP",
+                               constraints=[{"type": "ineq", "fun": lambda v: n[j] @ v + lim[j],
+                                             "jac": lambda v: n[j]}], options={"ftol": 1e-15, "maxiter": 200})
+                assert res.success
+                np.testing.assert_allclose(got, res.x, atol=1e-7)
+        else:
+            np.testing.assert_array_equal(got, a)
+    assert 30 < active < 290  # the hazard binds in a good share of the cases, not in all
+
+
+def test_a_teammate_takes_half_the_budget_and_an_obstacle_all_of_it():
+    """Head-on at the same gap: the approach speed left towards a teammate is half that towards an obstacle."""
+    lay = ON.layout(Role.PURSUER)
+    gap = 0.3  # between the surfaces, before the margins
+    mate = np.zeros(lay.dim)
+    t = lay["teammates"].start
+    mate[t:t + 5] = (gap + 0.15, 0.0, 0.0, 0.0, 1.0)
+    obst = np.zeros(lay.dim)
+    o = lay["obstacles"].start
+    obst[o:o + 3] = (gap + 0.075 + 0.3, 0.0, 0.3)
+    a = np.array([[1.0, 0.0]])
+    b, dt = ON.avoidance.braking, ON.timing.control_period
+    assert _apply(ON, Role.PURSUER, mate[None], a)[0, 0] == pytest.approx(
+        0.5 * _limit(gap - ON.avoidance.teammate_margin, b, dt), abs=1e-12)
+    assert _apply(ON, Role.PURSUER, obst[None], a)[0, 0] == pytest.approx(
+        _limit(gap - ON.avoidance.obstacle_margin, b, dt), abs=1e-12)
+    # moving away is never limited, however close
+    mate[t] = 0.1501
+    assert np.array_equal(_apply(ON, Role.PURSUER, mate[None], -a), -a)
+
+
+def test_non_finite_observations_leave_the_action_alone():
+    obs, act = avoidance_cases(ON, Role.PURSUER, 8, seed=7)
+    obs[::2, 5] = np.nan
+    obs[1, 0] = np.inf
+    out = _apply(ON, Role.PURSUER, obs, act)
+    np.testing.assert_array_equal(out[::2], act[::2])
+    np.testing.assert_array_equal(out[1], act[1])
+
+
+# --------------------------------------------------------------------------------------------------
+# (d) closed loop: a team flown straight at its goals through the layer
+
+
+@pytest.mark.xfail(strict=True, reason="runtime.avoidance defect (reported to the lead engineer): the barrier limits "
+                   "the commanded velocity, but the world tracks it with a norm-limited acceleration (max_accel x dt "
+                   "per step, shared by the normal and the tangential change), so a drone that turns as it nears an "
+                   "obstacle enters the margin still moving towards it: 11 obstacle contacts and 38 wall touches "
+                   "(seed 11/12); with max_accel = 100 m/s^2 the same loop has none")
+def test_closed_loop_no_obstacle_or_teammate_contacts_in_200_envs_over_100_steps():
+    """Every agent of the default spec (layer on) is commanded at full speed straight at a goal: a random point
+    of a square 30% wider than the arena (into the walls), an obstacle's centre, or a teammate's position; a
+    new goal every 20 steps or when reached. The actions go through ``avoid_agents`` on the observations of
+    ``encode_observations``. No agent may touch an obstacle or a wall, and no two pursuer-team agents, nor
+    two evaders, may touch (pursuer-evader contacts are captures, which the layer does not prevent)."""
+    spec, n_envs, steps = ON, 200, 100
+    world = World(spec, n_envs=n_envs, seed=11)
+    rng = np.random.default_rng(12)
+    st = world.reset()
+    knowledge = new_knowledge(spec, n_envs)
+    n, nt, hw = spec.n_agents, spec.team.n_team, spec.arena.half_width
+    goals = np.zeros((n_envs, n, 2))
+
+    def new_goals(mask: np.ndarray) -> None:
+        e, i = np.nonzero(mask)
+        kind = rng.integers(0, 3, e.size)
+        pts = rng.uniform(-1.3 * hw, 1.3 * hw, (e.size, 2))
+        obst = st.obstacle_pos[e, rng.integers(0, spec.arena.n_obstacles, e.size)]
+        mate = st.pos[e, rng.integers(0, nt, e.size)]
+        goals[e, i] = np.where((kind == 0)[:, None], pts, np.where((kind == 1)[:, None], obst, mate))
+
+    new_goals(np.ones((n_envs, n), bool))
+    team = np.zeros((n, n), bool)
+    team[:nt, :nt] = True
+    team[nt:, nt:] = True
+    radius = np.array(spec.per_agent("radius"))[None, :, None]
+    obstacle_touch = mate_touch = wall_touch = changed = 0
+    for t in range(steps):
+        now = t * spec.timing.control_period
+        update_knowledge(spec, knowledge, st.pos, st.vel, now)
+        obs = encode_observations(spec, st.pos, st.vel, st.obstacle_pos, st.obstacle_radius, knowledge, now)
+        to_goal = goals - st.pos
+        dist = np.linalg.norm(to_goal, axis=-1, keepdims=True)
+        act = to_goal / np.maximum(dist, 1e-9)
+        raw = act.copy()
+        avoid_agents(spec, obs, act)
+        changed += int((np.abs(act - raw) > 1e-9).any(-1).sum())
+        contacts = world.step(act)
+        obstacle_touch += int(world.obstacle_contacts().sum())
+        mate_touch += int((contacts & team[None]).sum() // 2)
+        wall_touch += int((np.abs(st.pos) >= hw - radius - 1e-9).any(-1).sum())  # the world stops them there
+        new_goals((dist[..., 0] < 0.1) | (t % 20 == 19))
+    print(f"{n_envs} envs x {steps} steps: {changed} agent-steps changed by the layer, {obstacle_touch} obstacle "
+          f"contacts, {wall_touch} wall touches, {mate_touch} teammate contacts")
+    assert changed > 0.1 * n_envs * steps * n  # the layer was at work, not idle
+    assert (obstacle_touch, wall_touch, mate_touch) == (0, 0, 0)
+
+
+# --------------------------------------------------------------------------------------------------
+# (e) off by default: no-op, same hash, shipped models load
+
+
+def test_off_the_layer_is_a_no_op_and_the_hash_is_unchanged():
+    spec = SwarmSpec()
+    assert not spec.avoidance.enabled
+    obs, act = avoidance_cases(ON, Role.PURSUER, 64, seed=8)
+    big = np.repeat(act[None], spec.n_agents, axis=0).transpose(1, 0, 2).copy()
+    before = big.copy()
+    o = np.zeros((64, spec.n_agents, spec.max_obs_dim), np.float32)
+    o[:, :, :obs.shape[1]] = obs[:, None]
+    assert avoid_agents(spec, o, big) is big
+    np.testing.assert_array_equal(big, before)
+    d = spec.to_dict()
+    assert "avoidance" not in d
+    assert SwarmSpec.from_dict(d).hash == spec.hash
+    assert SwarmSpec.from_dict({**d, "avoidance": {"enabled": False}}).hash == spec.hash
+    assert ON.hash != spec.hash and "avoidance" in ON.to_dict()
+    assert SwarmSpec.from_dict(json.loads(json.dumps(ON.to_dict()))).hash == ON.hash
+    # the layer on changes what a run with it does: the same state, its actions go through
+    assert not np.array_equal(avoid_agents(ON, o, big.copy()), before)
+
+
+def test_the_shipped_models_still_load_and_act_without_the_layer():
+    from runtime.policy import load_models, read_manifest
+
+    folder = ROOT / "models" / "role_based"
+    m = read_manifest(folder)
+    doc = json.loads((folder / "manifest.json").read_text())
+    assert "avoidance" not in doc["spec"] and m.spec.hash == doc["spec_hash"]
+    _, pols = load_models(folder, agents=[0, len(m.agents) - 1])
+    for pol in pols:
+        assert pol.avoidance is None
+        obs, _ = avoidance_cases(m.spec, pol.role, 4, seed=9)
+        assert np.isfinite(pol.act_batch(obs)).all() and pol.faults == 0
+
+
+# --------------------------------------------------------------------------------------------------
+# (f) OnnxPolicy applies the layer to the network's output
+
+
+@pytest.fixture(scope="module")
+def on_models(tmp_path_factory) -> Path:
+    pytest.importorskip("torch")
+    from firmware_export.onnx_export import export_run
+    from runtime_fixtures import make_run
+
+    root = tmp_path_factory.mktemp("avoid_models")
+    run = make_run(root / "run", ON, seed=3)
+    export_run(run, root / "models", n_random=500, n_recorded=500)
+    return root / "models"
+
+
+@pytest.mark.parametrize("engine", ["onnxruntime", "compiled"])
+def test_onnx_policy_returns_the_layer_applied_to_the_network_output(on_models, engine):
+    from runtime.policy import load_models
+
+    m, pols = load_models(on_models, engine=engine)
+    _, raw_pols = load_models(on_models, engine=engine)
+    assert m.spec.hash == ON.hash
+    changed = 0
+    for i in (0, ON.team.n_pursuers, ON.team.n_team):  # a pursuer, a scout, an evader
+        pol, raw = pols[i], raw_pols[i]
+        raw.avoidance = None  # the same network without the layer
+        assert pol.avoidance is not None and pol.avoidance.role is pol.role
+        obs, _ = avoidance_cases(ON, pol.role, 400, seed=10 + i)
+        net = raw.act_batch(obs)
+        want = Avoidance(ON, pol.role).apply(obs, net.copy())
+        np.testing.assert_array_equal(pol.act_batch(obs), want)
+        for k in range(0, 400, 7):  # one at a time, float32 and float64 observations
+            np.testing.assert_array_equal(pol.act(obs[k]), want[k])
+            np.testing.assert_array_equal(pol.act(obs[k].astype(np.float64)),
+                                          _apply(ON, pol.role, obs[k:k + 1].astype(np.float64),
+                                                 raw.act(obs[k])[None])[0])
+        changed += int((want != net).any(axis=1).sum())
+        assert pol.faults == 0
+    assert changed > 0.1 * 3 * 400  # the layer changed a good share of the network's actions
