@@ -55,6 +55,9 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="radio range [m] (default: the spec's comm_range with partial observability, unlimited "
                         "with full)")
     p.add_argument("--jitter", type=_nonneg, default=0.0, help="extra uniform message delay up to this [s]")
+    p.add_argument("--exact-values", action="store_true",
+                   help="carry the sender's float64 values beside the 60-byte packet, so that observations are "
+                        "bit-identical to training's (default: only the packet, int16 fixed point, as on the drones)")
     p.add_argument("--seed", type=nonneg_int, default=0, help="world and channel seed")
     p.add_argument("--no-stagger", action="store_true", help="all agents tick at the same instant")
     p.add_argument("--no-warm", action="store_true", help="no warm-up inference before the tick")
@@ -72,7 +75,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 def _run_config(args: argparse.Namespace, duration: float, loss: float, latency: float):
     from runtime.swarm import RunConfig
     comms = CommConfig(latency_s=latency, jitter_s=args.jitter, loss=loss, bandwidth_bps=args.bandwidth,
-                       comm_range=args.comm_range, seed=args.seed)
+                       comm_range=args.comm_range, seed=args.seed, exact_values=args.exact_values)
     return RunConfig(duration_s=duration, rate_hz=args.rate, comms=comms, processes=args.processes, seed=args.seed,
                      stagger=not args.no_stagger, warm=not args.no_warm, reuse_observation=not args.no_reuse,
                      fast_encoder=not args.training_encoder, engine=args.engine)
@@ -82,7 +85,7 @@ def format_run(res: dict) -> str:
     c = res["config"]
     lines = [f"{c['agents']} agents ({'processes, UDP' if c['processes'] else 'threads, in-process bus'}) at "
              f"{c['rate_hz']:g} Hz for {c['duration_s']:g} s; loss {c['loss']:g}, latency {c['latency_s'] * 1e3:g} ms, "
-             f"spec {c['spec_hash']} ({c['observability']} observability)", ""]
+             f"{_radio(c['exact_values'])}, spec {c['spec_hash']} ({c['observability']} observability)", ""]
     w = max(len(label) for _, label in _METRIC_LABELS)
     for key, label in _METRIC_LABELS:
         v = res.get(key)
@@ -107,6 +110,11 @@ def format_run(res: dict) -> str:
     for agent, fault in res.get("faults_by_agent", {}).items():
         lines.append(f"  fault in {agent}: {fault}")
     return "\n".join(lines)
+
+
+def _radio(exact_values: bool) -> str:
+    return ("radio: the 60-byte packet + exact float64 values (--exact-values)" if exact_values
+            else "radio: the 60-byte packet (int16 fixed point)")
 
 
 _json_safe = json_safe
@@ -163,7 +171,7 @@ def _cmd_degrade(args: argparse.Namespace) -> int:
               f"{res['mean_min_dist']:.3f} m, p99 {res['tick_to_action_p99_us']:.0f} us", flush=True)
     out = args.out
     meta = {"models": str(args.models), "duration_s_per_cell": args.duration, "seed": args.seed,
-            "rate_hz": rows[0]["config"]["rate_hz"], "processes": args.processes,
+            "rate_hz": rows[0]["config"]["rate_hz"], "processes": args.processes, "exact_values": args.exact_values,
             "spec_hash": rows[0]["config"]["spec_hash"], "observability": rows[0]["config"]["observability"],
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t0)), "machine": _machine(),
             "wall_s": round(time.time() - t0, 1)}
@@ -190,8 +198,10 @@ def degradation_markdown(meta: dict, rows: list[dict], repeats: list[dict] | Non
     head = "| loss | latency [ms] | " + " | ".join(c[1] for c in DEGRADE_COLUMNS) + " |"
     sep = "|" + "---|" * (2 + len(DEGRADE_COLUMNS))
     lines = [f"# Runtime degradation: message loss x latency", "",
-             f"`swarm-runtime degrade --models {meta['models']} --duration {meta['duration_s_per_cell']:g}` "
-             f"({meta['date']}, {meta['machine']}); {meta['rate_hz']:g} Hz agents, "
+             f"`swarm-runtime degrade --models {meta['models']} --duration {meta['duration_s_per_cell']:g}"
+             f"{' --exact-values' if meta.get('exact_values') else ''}` "
+             f"({meta['date']}, {meta['machine']}); {_radio(meta.get('exact_values', False))}; {meta['rate_hz']:g} Hz "
+             f"agents, "
              f"{'processes over UDP' if meta['processes'] else 'threads over the in-process bus'}, spec "
              f"{meta['spec_hash']} ({meta['observability']} observability), world seed {meta['seed']} in every "
              f"cell (same episodes; differences come from the channel and from thread timing).", "",

@@ -20,12 +20,15 @@ peer-to-peer packet at most, positions and velocities in int16 fixed point (1 mm
 spec), times in whole ms, up to three relayed sightings (freshest first, younger than the target memory).
 Airtime (``bandwidth_bps``) and ``max_bytes`` count the packet's bytes.
 
-Exact values (``CommConfig.exact_values``, on by default): the simulated channel then carries, after the
-packet, the sender's float64 numbers (``_EXACT``: t_tx, t_state, x, y, vx, vy, then x, y, vx, vy, t_seen per
-sighting) and the receiver uses them instead of the packet's quantized ones, so that a simulated drone's
-observation is bit-identical to the training encoder's on the same state. The packet itself (its layout,
-checks, sighting budget and size) is the same either way; with ``exact_values=False`` a drone receives
-exactly what a Crazyflie peer would (the quantization error stays within ``radio_msg.Scales``).
+By default a drone receives exactly what a Crazyflie peer would: the packet's values (the quantization error
+stays within ``radio_msg.Scales``) and its departure time in whole ms, from which latency is counted (from the
+earliest moment the rounded time can mean, so rounding never holds a message back).
+
+Exact values (``CommConfig.exact_values``, off by default; ``swarm-runtime run --exact-values``): the simulated
+channel then carries, after the packet, the sender's float64 numbers (``_EXACT``: t_tx, t_state, x, y, vx, vy,
+then x, y, vx, vy, t_seen per sighting) and the receiver uses them instead of the packet's quantized ones, so
+that a simulated drone's observation is bit-identical to the training encoder's on the same state (the parity
+tests use it). The packet itself (its layout, checks, sighting budget and size) is the same either way.
 """
 from __future__ import annotations
 
@@ -59,6 +62,10 @@ def _exact(n_sightings: int) -> struct.Struct:
 
 
 _EXACT = [_exact(n) for n in range(MAX_SIGHTINGS + 1)]
+_TX_ROUNDING = 0.5e-3
+"""The packet's departure time is rounded to the ms (``radio_msg``): it can read up to half a ms after the
+true one. Latency counts from the earliest departure it can mean, so that a message is never held back as
+"still in flight" (with zero latency, until the next poll) for its rounding alone [s]."""
 _SENDER_AT = next(f.offset for f in radio_msg.HEADER_FIELDS if f.name == "sender")
 
 
@@ -82,9 +89,9 @@ class CommConfig:
     max_bytes: int = MAX_BYTES
     """Largest packet [bytes] (at most the 60 of a Crazyflie peer-to-peer packet); a smaller budget relays
     fewer sightings, longer packets are dropped as oversized."""
-    exact_values: bool = True
-    """Carry the sender's float64 numbers beside the packet (see the module doc); False: the receiver gets
-    the packet's quantized values, as on the drones."""
+    exact_values: bool = False
+    """Carry the sender's float64 numbers beside the packet (see the module doc: bit-identical observations for
+    parity tests); False (default): the receiver gets the packet's quantized values, as on the drones."""
     queue: int = 512
     """Messages a receiver can hold while they are in flight (latency); more are dropped."""
     seed: int = 0
@@ -391,7 +398,7 @@ class Radio:
             sights = tuple((sg[0], *v[6 + 5 * j:11 + 5 * j]) for j, sg in enumerate(sights))
         else:
             pm, vm = self.codec._pos_m / 1000.0, self.codec._vel_m / 1000.0
-            t_tx = radio_msg.unwrap_ms(h[9], now)
+            t_tx = radio_msg.unwrap_ms(h[9], now) - _TX_ROUNDING
             x, y, vx, vy = h[11] * pm, h[12] * pm, h[13] * vm, h[14] * vm
         dx = x - mx
         dy = y - my

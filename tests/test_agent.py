@@ -37,6 +37,10 @@ def partial(tmp_path_factory):
     return load_models(root / "models")
 
 
+EXACT = CommConfig(exact_values=True)
+"""The simulated radio with the sender's float64 values beside the packet: observations bit-identical to training's."""
+
+
 def make_agents(manifest, policies, board, cfg=None, comms=None, on_fault=None):
     spec = manifest.spec
     bus = InProcessBus(spec.n_agents)
@@ -67,12 +71,39 @@ def test_observation_equals_the_training_encoder_full_observability(full):
     s = env.state
     board = WorldBoard(spec)
     board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], float(env.time_s()[0]), 0)
-    agents = make_agents(manifest, policies, board)
+    agents = make_agents(manifest, policies, board, comms=EXACT)
     two_rounds(agents)
     for i, a in enumerate(agents):
         d = spec.obs_dim(spec.roles[i])
         np.testing.assert_array_equal(a.obs, obs[0, i, :d], err_msg=a.agent_id)
         assert a.stats.faults == 0
+
+
+def test_over_the_real_packet_every_agent_hears_its_team_and_sees_within_the_quantization(full):
+    """The simulated radio's default carries only the 60-byte packet (int16 fixed point, whole ms): every
+    full-observability agent hears all its teammates in one exchange (none left waiting, no all-zero observation)
+    and its observation is the training encoder's to within half a step of the packet's scales."""
+    from runtime.radio_msg import Scales
+    manifest, policies = full
+    spec = manifest.spec
+    env = PursuitEnv(spec, n_envs=1, seed=3)
+    obs = env.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(7):
+        obs, *_ = env.step(rng.uniform(-1, 1, (1, spec.n_agents, 2)))
+    s = env.state
+    board = WorldBoard(spec)
+    board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], float(env.time_s()[0]), 0)
+    assert not CommConfig().exact_values
+    agents = make_agents(manifest, policies, board)
+    two_rounds(agents)
+    sc = Scales.for_spec(spec)
+    for i, a in enumerate(agents):
+        d = spec.obs_dim(spec.roles[i])
+        assert a._ready and a.stats.waiting == 1 and a.stats.faults == 0, a.agent_id  # waited the first round only
+        assert np.abs(a.obs).max() > 0
+        np.testing.assert_allclose(a.obs, obs[0, i, :d], rtol=0, atol=max(sc.pos_lsb, sc.vel_lsb) / 2 + 1e-9,
+                                   err_msg=a.agent_id)
 
 
 def test_observation_equals_the_training_encoder_partial_observability(partial):
@@ -93,7 +124,7 @@ def test_observation_equals_the_training_encoder_partial_observability(partial):
     assert want[0, 5, spec.layout(spec.roles[5])["targets"].slice].any()  # the relayed sighting is in it
     board = WorldBoard(spec)
     board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], t, 0)
-    agents = make_agents(manifest, policies, board)
+    agents = make_agents(manifest, policies, board, comms=EXACT)
     two_rounds(agents)
     for i, a in enumerate(agents):
         d = spec.obs_dim(spec.roles[i])
@@ -236,7 +267,8 @@ def test_an_unchanged_state_reuses_the_observation_and_a_changed_one_rebuilds_it
     board = WorldBoard(spec)
     board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], 0.0, 0)
     # reuse applies to the reference encoder (the fast one always builds: cheaper than the comparison)
-    agents = make_agents(manifest, policies, board, AgentConfig(broadcast_period_s=0.0, fast_encoder=False))
+    agents = make_agents(manifest, policies, board, AgentConfig(broadcast_period_s=0.0, fast_encoder=False),
+                         comms=EXACT)
     two_rounds(agents)
     for a in agents:
         a.prepare()  # same state, nothing new heard: the encoder is skipped
