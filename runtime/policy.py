@@ -39,6 +39,7 @@ import numpy as np
 import onnxruntime as ort
 
 from runtime import kernels, mlp_graph
+from runtime.avoidance import Avoidance
 from runtime.spec import ENGINES, Role, SpecError, SwarmSpec
 
 log = logging.getLogger(__name__)
@@ -158,6 +159,8 @@ class OnnxPolicy:
             self._run1 = lambda: self.session.run_with_iobinding(self._io1)
         self._last_obs = np.zeros(self.obs_dim, dtype=np.float32)
         self._warm_out = np.zeros(self.act_dim, dtype=np.float32)
+        self.avoidance = Avoidance(self.spec, self.role) if self.spec.avoidance.enabled else None
+        """The spec's avoidance layer (``runtime.avoidance``), applied to every action; None when it is off."""
         if engine == "compiled":
             self._params, self._layers = _extract_mlp(self.path, self.obs_dim, self.act_dim)
             self._h = np.zeros((2, int(max(self._layers[:, 1].max(), self.obs_dim))), dtype=np.float32)
@@ -259,14 +262,18 @@ class OnnxPolicy:
             else:
                 self._fault("non-finite or out-of-range observation" if s == kernels.BAD_OBS
                             else "non-finite network output")
-            return out
-        if not kernels.load_obs(o, self._in_row):
-            self._fault("non-finite or out-of-range observation")
-            out[:] = 0.0
-            return out
-        self._run1()
-        if not kernels.store_action(self._out_row, out):
-            self._fault("non-finite network output")
+                return out
+        else:
+            if not kernels.load_obs(o, self._in_row):
+                self._fault("non-finite or out-of-range observation")
+                out[:] = 0.0
+                return out
+            self._run1()
+            if not kernels.store_action(self._out_row, out):
+                self._fault("non-finite network output")
+                return out
+        if self.avoidance is not None:
+            self.avoidance.apply(o, out)
         return out
 
     def warm(self) -> None:
@@ -295,6 +302,8 @@ class OnnxPolicy:
                     self._fault("non-finite or out-of-range observation", bad_obs)
                 if bad_out:
                     self._fault("non-finite network output", bad_out)
+            if self.avoidance is not None:
+                self.avoidance.apply(np.ascontiguousarray(o), out)
             return out
         if b not in self._batch:
             x = np.zeros((b, self.obs_dim), dtype=np.float32)
@@ -317,6 +326,8 @@ class OnnxPolicy:
         if out is None:
             out = np.empty((b, self.act_dim), dtype=np.float32)
         out[:] = np.where(keep[:, None], y, 0.0)
+        if self.avoidance is not None:
+            self.avoidance.apply(np.ascontiguousarray(o), out)
         return out
 
 

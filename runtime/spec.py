@@ -220,6 +220,33 @@ class TimingSpec:
         _positive(self, "episode_steps")
 
 
+@dataclass(frozen=True)
+class AvoidanceSpec:
+    """The learned actors' own avoidance layer (``runtime.avoidance``): every trained actor's action passes
+    through it, in training, evaluation, the per-drone runtime and the C app, computed from the drone's own
+    observation only (decentralized). It commands the velocity nearest the actor's among those that keep the
+    speed toward every obstacle, wall and teammate within a braking barrier and that the drone can reach in one
+    control period. Off by default (the paper's actors have none); a spec with it off hashes as before the table
+    existed."""
+
+    enabled: bool = False
+    """Apply the layer to every trained actor of this spec (pursuers, scouts and evaders)."""
+    braking: float = 1.5
+    """Deceleration [m/s^2] the barrier plans with; below every role's max_accel so that a drone can follow
+    the shrinking speed limit."""
+    obstacle_margin: float = 0.04
+    """Gap [m] to an obstacle's or a wall's surface where the allowed approach speed reaches zero."""
+    teammate_margin: float = 0.1
+    """Gap [m] between two teammates' bodies where the allowed approach speed reaches zero."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise SpecError(f"avoidance.enabled: must be true or false, got {self.enabled!r}")
+        _positive(self, "braking")
+        _nonnegative(self, "obstacle_margin")
+        _nonnegative(self, "teammate_margin")
+
+
 def _default_pursuer() -> RoleSpec:
     return RoleSpec(radius=0.075, max_speed=1.0, max_accel=3.0)
 
@@ -243,8 +270,15 @@ class SwarmSpec:
     team: TeamSpec = field(default_factory=TeamSpec)
     sensing: SensingSpec = field(default_factory=SensingSpec)
     timing: TimingSpec = field(default_factory=TimingSpec)
+    avoidance: AvoidanceSpec = field(default_factory=AvoidanceSpec)
 
     def __post_init__(self) -> None:
+        if self.avoidance.enabled:
+            slowest = min(self.role(r).max_accel for r in Role)
+            if self.avoidance.braking >= slowest:
+                raise SpecError(f"avoidance.braking ({self.avoidance.braking} m/s^2) must be below every role's "
+                                f"max_accel (the smallest is {slowest} m/s^2) so that a drone can brake as planned: "
+                                f"lower it")
         biggest = max(self.pursuer.radius, self.scout.radius, self.evader.radius)
         if self.arena.n_obstacles and self.arena.obstacle_clearance <= 2 * biggest:
             raise SpecError(
@@ -288,7 +322,10 @@ class SwarmSpec:
 
     # -- (de)serialisation ---------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self) if f.init}
+        """Every table as plain values; ``avoidance`` only when it differs from its default (off), so that specs
+        without the layer serialise, and hash, exactly as before the table existed."""
+        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self)
+                if f.init and not (f.name == "avoidance" and self.avoidance == AvoidanceSpec())}
 
     @property
     def hash(self) -> str:
@@ -515,7 +552,7 @@ def _nonnegative(obj: Any, name: str) -> None:
 
 
 _SECTIONS = {"ArenaSpec": "arena", "RoleSpec": "role", "TeamSpec": "team", "SensingSpec": "sensing",
-             "TimingSpec": "timing"}
+             "TimingSpec": "timing", "AvoidanceSpec": "avoidance"}
 
 
 def _section(obj: Any) -> str:

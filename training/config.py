@@ -170,9 +170,11 @@ class TrainConfig:
     target_noise_clip: float = 0.5
     """"matd3" only: the target smoothing noise is clipped to +-this [1, normalised action]."""
     critic: str = "local"
-    """Centralized critic input: "local": every agent's observation concatenated (N x max_obs_dim; the
-    paper's); "global": the compact global state (every agent's position and velocity, every obstacle's
-    centre and radius: 4N + 3K floats, ``training.maddpg.global_state``). Both also take every action."""
+    """Centralized critics: "local": one per agent on every agent's observation concatenated (N x max_obs_dim;
+    the paper's); "global": one per agent on the compact global state (every agent's position and velocity,
+    every obstacle's centre and radius: 4N + 3K floats, ``training.maddpg.global_state``); "role": one per role
+    on the global state with a head per agent of the role, and a role-level centralized policy gradient
+    (``training.rolecritic``; 3 critics instead of 12 for role_based). All also take every action."""
     share_params: bool = False
     """Parameter sharing within a role: one actor and one critic per role, trained on all of that role's
     agents' transitions (the critic gets a one-hot of which agent of the role it evaluates); still exported
@@ -194,6 +196,16 @@ class TrainConfig:
     """After ``imitation_steps``: the actor loss is TD3+BC's ``-Q / mean|Q| + w x |mu - teacher|^2``
     (Fujimoto and Gu 2021), which keeps the actors near the teacher while the critics improve on it. 0: the
     paper's actor loss."""
+    imitation_decay_steps: int = 0
+    """Env steps after ``imitation_steps`` over which ``imitation_weight`` falls linearly to 0, so that the actors
+    can leave the teacher where the critics know better; 0: it stays constant."""
+    imitation_updates: int = 0
+    """Extra behaviour-cloning steps of the actors per env step during the imitation phase, each on its own
+    replay sample of ``imitation_batch`` transitions (the DAgger data: every stored transition carries the
+    teacher's action), besides the regular updates; 0: none. Cloning a teacher well takes far more actor steps
+    than the critics need."""
+    imitation_batch: int = 1024
+    """Transitions per extra behaviour-cloning step (``imitation_updates``)."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "n_envs", "batch_size", "buffer_size", "update_every", "log_every",
@@ -235,8 +247,8 @@ class TrainConfig:
             raise SpecError(f"train.device: {self.device!r} is not 'cpu', 'cuda' or 'cuda:K'")
         if self.algorithm not in ("maddpg", "matd3"):
             raise SpecError(f"train.algorithm: {self.algorithm!r} is not one of 'maddpg', 'matd3'")
-        if self.critic not in ("local", "global"):
-            raise SpecError(f"train.critic: {self.critic!r} is not one of 'local', 'global'")
+        if self.critic not in ("local", "global", "role"):
+            raise SpecError(f"train.critic: {self.critic!r} is not one of 'local', 'global', 'role'")
         if self.teacher not in ("none", "classical"):
             raise SpecError(f"train.teacher: {self.teacher!r} is not one of 'none', 'classical'")
         if self.imitation_steps < 0 or self.imitation_steps > self.steps:
@@ -244,7 +256,16 @@ class TrainConfig:
                             f"{self.imitation_steps!r}")
         if not self.imitation_weight >= 0:
             raise SpecError(f"train.imitation_weight: must be >= 0, got {self.imitation_weight!r}")
-        if (self.imitation_steps > 0 or self.imitation_weight > 0) and self.teacher == "none":
+        for name in ("imitation_decay_steps", "imitation_updates"):
+            if getattr(self, name) < 0:
+                raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.imitation_batch < 1:
+            raise SpecError(f"train.imitation_batch: must be >= 1, got {self.imitation_batch!r}")
+        if self.imitation_updates and self.imitation_batch > self.buffer_size:
+            raise SpecError(f"train.imitation_batch ({self.imitation_batch}) exceeds train.buffer_size "
+                            f"({self.buffer_size})")
+        if (self.imitation_steps > 0 or self.imitation_weight > 0 or self.imitation_updates > 0) \
+                and self.teacher == "none":
             raise SpecError("train.imitation_steps / train.imitation_weight learn from a teacher: set "
                             "train.teacher = 'classical' (or both to 0)")
         if self.teacher != "none" and self.evaders == "static":

@@ -45,7 +45,7 @@ def load_learned(run: str | Path | None = None, models: str | Path | None = None
         spec, agents, _ = load_actors(run)
         if spec.hash != cfg.spec.hash:
             raise LearnedModelError(f"{run}/actors.pt has spec {spec.hash}, its config.toml {cfg.spec.hash}")
-        return cfg, ActorsPolicy([a for _, _, a in agents], spec.max_obs_dim), str(run / "actors.pt")
+        return cfg, ActorsPolicy([a for _, _, a in agents], spec.max_obs_dim, spec), str(run / "actors.pt")
     if not (Path(models) / "manifest.json").is_file():
         raise LearnedModelError(f"{models} is not a models folder (no manifest.json): export a run with "
                                 f"`swarm-export onnx --run RUN --out {models}`")

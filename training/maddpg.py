@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from runtime.avoidance import avoid_agents
 from runtime.spec import INT8_QMAX, SpecError, SwarmSpec
 from training.config import TrainConfig
 from training.networks import Actor, BatchedCritic, BatchedMLP
@@ -195,9 +196,9 @@ class MADDPG:
             self.model_of, slot = list(range(n)), [0] * n
         m = self.n_models = max(self.model_of) + 1
         self.twins = 2 if cfg.algorithm == "matd3" else 1
-        if cfg.critic == "global":
+        if cfg.critic in ("global", "role"):
             if spec.sensing.n_obstacles_observed < spec.arena.n_obstacles:
-                raise SpecError(f"train.critic = 'global' reads the obstacles from the observations: it needs "
+                raise SpecError(f"train.critic = {cfg.critic!r} reads the obstacles from the observations: it needs "
                                 f"sensing.n_obstacles_observed >= arena.n_obstacles ({spec.arena.n_obstacles}), "
                                 f"got {spec.sensing.n_obstacles_observed}")
             critic_in = global_state_dim(spec)
@@ -308,7 +309,8 @@ class MADDPG:
             return unknown
         return torch.where(torch.isnan(stored), unknown, stored)
 
-    def update(self, batch: Sequence[torch.Tensor], imitation: bool = False) -> dict[str, float]:
+    def update(self, batch: Sequence[torch.Tensor], imitation: bool = False,
+               imitation_weight: float | None = None) -> dict[str, float]:
         """One critic step, then (every ``policy_delay``-th update with ``matd3``, else always) one actor
         step and a soft target update, for every agent at once. On updates without an actor step the actor
         figures returned are those of the last actor step.
@@ -316,7 +318,8 @@ class MADDPG:
         ``imitation``: the actor step regresses the actors onto the batch's teacher actions instead of
         following the critics (behaviour cloning; the critics learn as always). Otherwise, with
         ``train.imitation_weight`` w > 0, the actor loss is TD3+BC's (Fujimoto and Gu 2021):
-        ``-Q / mean|Q| + w x |mu - teacher|^2`` on the rows that have a teacher action."""
+        ``-Q / mean|Q| + w x |mu - teacher|^2`` on the rows that have a teacher action (``imitation_weight``
+        overrides w, for a decaying weight)."""
         obs, act = batch[0], batch[1]  # [K, N, D], [K, N, 2]
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
@@ -334,7 +337,8 @@ class MADDPG:
         self.updates += 1
         if cfg.algorithm != "matd3" or self.updates % cfg.policy_delay == 0:
             teach = batch[5] if len(batch) > 5 else None
-            self._last_actor = self._actor_step(obs, act, state, feat[:n].detach(), teach, imitation)
+            w_bc = cfg.imitation_weight if imitation_weight is None else imitation_weight
+            self._last_actor = self._actor_step(obs, act, state, feat[:n].detach(), teach, imitation, w_bc)
             soft_update(self.actors_tgt, self.actors, cfg.tau)
             soft_update(self.critics_tgt, self.critics, cfg.tau)
         w = self.learn_mask / self.learn_mask.sum()
@@ -343,7 +347,7 @@ class MADDPG:
 
     def _actor_step(self, obs: torch.Tensor, act: torch.Tensor, state: torch.Tensor,
                     feat: torch.Tensor, teach: torch.Tensor | None = None,
-                    imitation: bool = False) -> dict[str, float]:
+                    imitation: bool = False, w_bc: float = 0.0) -> dict[str, float]:
         """Critic i (twin 0) sees agent i's action replaced by mu_i(o_i), the others' from the sample (with
         ``imitation``, no critic: the distance to the teacher's actions)."""
         cfg = self.cfg
@@ -353,11 +357,8 @@ class MADDPG:
         mu = torch.tanh(pre)
         extra: dict[str, float] = {}
         bc_n = None
-        if teach is not None and (imitation or cfg.imitation_weight > 0):
-            t = teach.transpose(0, 1)  # [N, K, 2]
-            has = torch.isfinite(t).all(-1)  # [N, K]
-            sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros((), device=mu.device))
-            bc_n = sq.sum(1) / has.sum(1).clamp(min=1)  # [N] mean squared distance to the teacher
+        if teach is not None and (imitation or w_bc > 0):
+            bc_n = self._bc_loss(mu, teach)
             extra["imitation_mse"] = float((bc_n.detach() * self.learn_mask).sum() / self.learn_mask.sum())
         if imitation:
             if bc_n is None:
@@ -373,7 +374,7 @@ class MADDPG:
                 self.critics.requires_grad_(True)
             if bc_n is not None:  # TD3+BC: the Q term normalised so that imitation_weight means the same
                 q_term = -q_pi.mean(1) / q_pi.detach().abs().mean(1).clamp(min=1e-6)
-                actor_loss_n = q_term + cfg.imitation_weight * bc_n
+                actor_loss_n = q_term + w_bc * bc_n
             else:
                 actor_loss_n = -q_pi.mean(1)
             actor_loss_n = actor_loss_n + cfg.action_reg * pre.pow(2).mean((1, 2))
@@ -389,6 +390,28 @@ class MADDPG:
             extra["int8_sensitivity"] = float((robust_n.detach() * w).sum())
         return {**extra, "actor_loss": float((actor_loss_n.detach() * w).sum()),
                 "actor_grad_norm": float(actor_norm.mean())}
+
+    @staticmethod
+    def _bc_loss(mu: torch.Tensor, teach: torch.Tensor) -> torch.Tensor:
+        """[N] mean squared distance of actions ``mu`` [N, K, 2] to the teacher's ``teach`` [K, N, 2] over the rows
+        that have one (NaN: none)."""
+        t = teach.transpose(0, 1)  # [N, K, 2]
+        has = torch.isfinite(t).all(-1)  # [N, K]
+        sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros((), device=mu.device))
+        return sq.sum(1) / has.sum(1).clamp(min=1)
+
+    def clone_step(self, obs: torch.Tensor, teach: torch.Tensor) -> float:
+        """One behaviour-cloning step of every actor (no critic, no target update) on observations ``[K, N, D]``
+        and the teacher's actions ``[K, N, 2]``; returns the mean squared distance to the teacher before it."""
+        cfg = self.cfg
+        pre = self.actors.forward_pre(self.actor_input(obs.transpose(0, 1)), self._actor_ix)  # [N, K, 2]
+        bc_n = self._bc_loss(torch.tanh(pre), teach)
+        loss_n = bc_n + cfg.action_reg * pre.pow(2).mean((1, 2))
+        self.actor_opt.zero_grad(set_to_none=True)
+        (loss_n * self._weight).sum().backward()
+        clip_grad_norm_per_agent(list(self.actors.parameters()), cfg.grad_clip)
+        self.actor_opt.step()
+        return float((bc_n.detach() * self.learn_mask).sum() / self.learn_mask.sum())
 
     def int8_sensitivity(self, obs: torch.Tensor, worst: float = 0.05) -> torch.Tensor:
         """Per agent [N]: the mean squared change of the actions on ``obs`` [N, K, D] and on K observations
@@ -476,21 +499,27 @@ class ActorsPolicy:
     """Every agent's trained actor, evaluated as one batched module: ``act(obs [B, N, D], env) -> [B, N, 2]``.
 
     Built from per-agent ``Actor`` modules (``training.checkpoint.load_actors``) or from an exported models
-    folder (``OnnxActorsPolicy``). Deterministic: no exploration noise."""
+    folder (``OnnxActorsPolicy``). Deterministic: no exploration noise. With ``spec`` (and its avoidance layer
+    on) every action passes ``runtime.avoidance``, as on the drone."""
 
-    def __init__(self, actors: Sequence[Actor], obs_dim: int) -> None:
+    def __init__(self, actors: Sequence[Actor], obs_dim: int, spec: SwarmSpec | None = None) -> None:
         self.net = BatchedMLP.from_actors(actors, obs_dim)
         self.net.requires_grad_(False)
+        self.spec = spec
 
     @torch.no_grad()
     def act(self, obs: np.ndarray, env: Any = None) -> np.ndarray:
         o = torch.as_tensor(obs, dtype=torch.float32).transpose(0, 1)
-        return self.net(o).transpose(0, 1).numpy().astype(np.float64)
+        a = self.net(o).transpose(0, 1).numpy().astype(np.float64)
+        if self.spec is not None:
+            avoid_agents(self.spec, obs, a)
+        return a
 
 
 class OnnxActorsPolicy:
     """The ONNX actors of a models folder (``swarm-export onnx``), through ``runtime.policy``, batched per
-    agent: what a drone runs, evaluated on the same episodes as the torch actors."""
+    agent: what a drone runs (the avoidance layer included), evaluated on the same episodes as the torch
+    actors."""
 
     def __init__(self, folder: str, spec: SwarmSpec | None = None) -> None:
         from runtime.policy import load_models

@@ -110,6 +110,13 @@ class OpponentMixer:
             given[ids, nt:] = True
         return given
 
+    def scripted_rows(self) -> np.ndarray:
+        """[B, N] True where an agent's action comes from a scripted evader (no trained actor: the avoidance
+        layer does not apply to it)."""
+        rows = np.zeros((self.kind.size, self.spec.n_agents), dtype=bool)
+        rows[self.kind == SCRIPTED, self.nt:] = True
+        return rows
+
     def share(self) -> dict[str, float]:
         """Share of envs per opponent kind now."""
         n = self.kind.size

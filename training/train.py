@@ -31,13 +31,15 @@ from typing import Any
 import numpy as np
 import torch
 
+from runtime.avoidance import avoid_agents
 from runtime.cliutil import write_text_atomic
 from runtime.spec import Role
 from training.checkpoint import save_actors
 from training.config import ExperimentConfig
 from training.env import PursuitEnv
-from training.maddpg import MADDPG, ReplayBuffer
+from training.maddpg import ReplayBuffer
 from training.opponents import OpponentMixer
+from training.rolecritic import make_learner
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +142,8 @@ class _Window:
         self.returns: dict[str, list[float]] = {r: [] for r in ROLES}
         self.losses: dict[str, float] = {}
         self.n_updates = 0
+        self.clone_mse = 0.0
+        self.n_clone = 0
 
 
 # ---------------------------------------------------------------------------------------------- loop
@@ -159,7 +163,7 @@ class Trainer:
             raise RunError(f"train.device = {tc.device!r} but torch sees no CUDA device: use --device cpu")
         self.spec = cfg.spec
         self.env = PursuitEnv(cfg.spec, cfg.rewards, n_envs=tc.n_envs, seed=tc.seed)
-        self.agent = MADDPG(cfg.spec, tc)
+        self.agent = make_learner(cfg.spec, tc)
         self.np_rng = np.random.default_rng(tc.seed + 3)
         self.mixer = OpponentMixer(cfg.spec, tc, np.random.default_rng(tc.seed + 4))
         self.teacher = None
@@ -288,6 +292,15 @@ class Trainer:
         """Whether this env step is in the imitation (DAgger) phase (``train.imitation_steps``)."""
         return self.env_step < self.tc.imitation_steps
 
+    def imitation_weight(self) -> float:
+        """TD3+BC's weight w at this env step: ``train.imitation_weight``, decaying linearly to 0 over
+        ``train.imitation_decay_steps`` after the imitation phase when that is set."""
+        tc = self.tc
+        if not tc.imitation_decay_steps:
+            return tc.imitation_weight
+        frac = (self.env_step - tc.imitation_steps) / tc.imitation_decay_steps
+        return tc.imitation_weight * min(1.0, max(0.0, 1.0 - frac))
+
     def teacher_share(self) -> float:
         """DAgger's beta: the probability that an env acts with the teacher at this env step."""
         if not self.imitating():
@@ -317,6 +330,18 @@ class Trainer:
         if self.mixer.active:
             given |= self.mixer.apply(obs, a, self.env, self.agent.device)
         return a, given, teach
+
+    def _executed(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """What the world flies: ``actions`` through the spec's avoidance layer (``runtime.avoidance``) for every
+        agent acting through a trained actor (learners, frozen snapshots, the DAgger teacher's rows: the layer
+        is part of the environment the actors learn in), scripted evaders' actions as they are. The replay
+        buffer keeps ``actions``, the actors' own outputs."""
+        if not self.spec.avoidance.enabled:
+            return actions
+        out = avoid_agents(self.spec, obs, actions.copy())
+        scripted = self.mixer.scripted_rows()
+        out[scripted] = actions[scripted]
+        return out
 
     def _store(self, pending: tuple, actions: np.ndarray | None, given: np.ndarray | None) -> None:
         """Store the previous step's transitions with the next actions now known: the actions really taken
@@ -354,7 +379,7 @@ class Trainer:
                 if pending is not None:
                     self._store(pending, actions, given)
                     pending = None
-                next_obs, rew, done, info = self.env.step(actions)
+                next_obs, rew, done, info = self.env.step(self._executed(obs, actions))
                 store_next, done_ids = next_obs, None
                 if done.any():
                     done_ids = info["final_env_ids"]
@@ -377,10 +402,15 @@ class Trainer:
                         and self.env_step % tc.update_every == 0):
                     for _ in range(tc.updates_per_round):
                         losses = self.agent.update(self.buffer.sample(tc.batch_size, self.sample_gen),
-                                                   imitation=imitation)
+                                                   imitation=imitation, imitation_weight=self.imitation_weight())
                         for k, v in losses.items():
                             win.losses[k] = win.losses.get(k, 0.0) + v
                         win.n_updates += 1
+                    if imitation and tc.imitation_updates and len(self.buffer) >= tc.imitation_batch:
+                        for _ in range(tc.imitation_updates):
+                            b = self.buffer.sample(tc.imitation_batch, self.sample_gen)
+                            win.clone_mse += self.agent.clone_step(b.obs, b.teach)
+                            win.n_clone += 1
                 if bar is not None:
                     bar.update(1)
                 if self.env_step % tc.log_every == 0 or self.env_step == tc.steps:
@@ -444,6 +474,8 @@ class Trainer:
         row["teacher_share"] = round(self.teacher_share(), 4) if self.teacher is not None else ""
         for k in ("critic_loss", "actor_loss", "q_mean", "int8_sensitivity", "imitation_mse"):
             row[k] = win.losses[k] / win.n_updates if win.n_updates and k in win.losses else ""
+        if win.n_clone:  # the extra cloning steps' figure: the same quantity, on more samples
+            row["imitation_mse"] = win.clone_mse / win.n_clone
         with (self.out / "metrics.csv").open("a", newline="") as fh:
             csv.writer(fh).writerow([_fmt(row[c]) for c in CSV_COLUMNS])
         for k, v in row.items():

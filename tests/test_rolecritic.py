@@ -1,0 +1,172 @@
+"""``train.critic = "role"`` (training.rolecritic), the extra cloning steps, TD3+BC's decaying weight and the
+avoidance layer between the actors and the world in training."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from runtime.avoidance import avoid_agents
+from runtime.spec import SpecError
+from training.config import ExperimentConfig
+from training.maddpg import MADDPG
+from training.rolecritic import RoleCriticMADDPG, make_learner
+from training.train import Trainer
+
+
+def _cfg(spec: dict | None = None, **train) -> ExperimentConfig:
+    return ExperimentConfig.from_dict({
+        "name": "role_critic_check",
+        "spec": spec or {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 2}},
+        "train": {"steps": 200, "n_envs": 8, "seed": 0, "batch_size": 64, "warmup_steps": 20, "threads": 1,
+                  "log_every": 100, "checkpoint_every": 100000, "checkpoint_buffer": False, "critic": "role",
+                  **train}})
+
+
+def _batch(spec, k: int = 64, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    n, d = spec.n_agents, spec.max_obs_dim
+    obs = torch.rand(k, n, d, generator=g) * 2 - 1
+    nxt = torch.rand(k, n, d, generator=g) * 2 - 1
+    act = torch.rand(k, n, 2, generator=g) * 2 - 1
+    rew = torch.randn(k, n, generator=g)
+    teach = torch.tanh(2 * obs[..., :2])
+    return (obs, act, rew, nxt, torch.full((k, n, 2), float("nan")), teach)
+
+
+def test_make_learner_picks_the_role_critic_and_bad_values_name_the_field():
+    cfg = _cfg()
+    assert isinstance(make_learner(cfg.spec, cfg.train), RoleCriticMADDPG)
+    assert type(make_learner(cfg.spec, dataclasses.replace(cfg.train, critic="global"))) is MADDPG
+    with pytest.raises(SpecError, match=r"train\.critic: 'roles' is not one of 'local', 'global', 'role'"):
+        _cfg(critic="roles")
+    for key, value in (("imitation_updates", -1), ("imitation_decay_steps", -5), ("imitation_batch", 0)):
+        with pytest.raises(SpecError, match=rf"train\.{key}"):
+            _cfg(teacher="classical", **{key: value})
+    with pytest.raises(SpecError, match="train.teacher = 'classical'"):
+        _cfg(imitation_updates=2)
+
+
+@pytest.mark.parametrize("algorithm", ["maddpg", "matd3"])
+def test_each_agent_reads_its_own_head_of_its_roles_critic(algorithm):
+    cfg = _cfg(algorithm=algorithm)
+    agent = RoleCriticMADDPG(cfg.spec, cfg.train)
+    roles = list(cfg.spec.roles)
+    with torch.no_grad():  # every critic outputs the constant 10 x model + head on its heads
+        for w in agent.critics_tgt.mlp.weights:
+            w.zero_()
+        for b in agent.critics_tgt.mlp.biases:
+            b.zero_()
+        last = agent.critics_tgt.mlp.biases[-1]
+        for m in range(last.shape[0]):
+            last[m, 0] = 10.0 * m + torch.arange(last.shape[-1], dtype=torch.float32)
+    batch = _batch(cfg.spec)
+    y = agent.td_target(batch)  # [N, K]
+    present = sorted(set(roles), key=roles.index)
+    for i, r in enumerate(roles):
+        head = roles[:i].count(r)
+        want = 10.0 * present.index(r) + head  # twin 0's value (with twins both are >= it: the min is twin 0)
+        expect = batch[2][:, i] * cfg.train.reward_scale + cfg.train.gamma * want
+        torch.testing.assert_close(y[i], expect)
+
+
+def test_an_actor_step_raises_every_learning_agents_own_value_under_a_fixed_critic():
+    cfg = _cfg(actor_lr=1e-3)
+    agent = RoleCriticMADDPG(cfg.spec, cfg.train)
+    obs, act, *_ = _batch(cfg.spec, k=256)
+    n = cfg.spec.n_agents
+
+    def own_values() -> torch.Tensor:
+        with torch.no_grad():
+            mu = agent.actors(agent.actor_input(obs.transpose(0, 1)), agent._actor_ix)  # [N, K, 2]
+            state = agent.critic_input(obs)
+            out = []
+            for i in range(n):  # agent i's head with its own action replaced by its actor's
+                joint = act.clone()
+                joint[:, i] = mu[i]
+                q = agent._per_agent(agent.critics(torch.cat([state, joint.reshape(len(obs), -1)], 1)), 1)
+                out.append(q[i].mean())
+            return torch.stack(out)
+
+    before = own_values()
+    for _ in range(20):
+        agent._role_actor_step(obs, act, agent.critic_input(obs), None, False, 0.0)
+    after = own_values()
+    assert (after > before).all(), (before, after)
+
+
+def test_the_role_critic_fits_returns_and_its_state_round_trips():
+    cfg = _cfg()
+    agent = RoleCriticMADDPG(cfg.spec, cfg.train)
+    batch = _batch(cfg.spec)
+    first = agent.update(batch)["critic_loss"]
+    for _ in range(200):
+        last = agent.update(batch)["critic_loss"]
+    assert last < 0.5 * first, (first, last)
+    twin = RoleCriticMADDPG(cfg.spec, cfg.train)
+    twin.load_state_dict(agent.state_dict())
+    torch.testing.assert_close(twin.td_target(batch), agent.td_target(batch))
+    local = MADDPG(cfg.spec, dataclasses.replace(cfg.train, critic="local"))
+    with pytest.raises(ValueError, match="train.critic"):
+        local.load_state_dict(agent.state_dict())
+
+
+def test_clone_steps_bring_the_actors_to_the_teacher():
+    cfg = _cfg(teacher="classical", imitation_steps=100)
+    agent = make_learner(cfg.spec, cfg.train)
+    obs, *_, teach = _batch(cfg.spec, k=512)
+    first = agent.clone_step(obs, teach)
+    for _ in range(300):
+        last = agent.clone_step(obs, teach)
+    assert last < 0.2 * first, (first, last)
+
+
+def test_the_imitation_weight_decays_after_the_imitation_phase(tmp_path):
+    cfg = _cfg(teacher="classical", imitation_steps=100, imitation_weight=2.0, imitation_decay_steps=50)
+    trainer = Trainer(cfg, tmp_path / "run")
+    got = []
+    for step in (0, 99, 100, 125, 150, 199):
+        trainer.env_step = step
+        got.append(trainer.imitation_weight())
+    assert got == [2.0, 2.0, 2.0, 1.0, 0.0, 0.0]
+    flat = Trainer(_cfg(teacher="classical", imitation_steps=100, imitation_weight=2.0), tmp_path / "flat")
+    flat.env_step = 190
+    assert flat.imitation_weight() == 2.0
+
+
+def test_training_flies_the_actors_through_the_avoidance_layer_and_scripted_evaders_as_they_are(tmp_path):
+    spec = {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 2}, "avoidance": {"enabled": True}}
+    cfg = _cfg(spec, opponent_mix=1.0, opponent_scripted=1.0)
+    trainer = Trainer(cfg, tmp_path / "run")
+    obs = trainer.env.reset()
+    trainer.mixer.reset(np.arange(cfg.train.n_envs))
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (cfg.train.n_envs, cfg.spec.n_agents, 2))
+    out = trainer._executed(obs, actions)
+    scripted = trainer.mixer.scripted_rows()
+    assert scripted.any() and not scripted[:, :cfg.spec.team.n_team].any()
+    np.testing.assert_array_equal(out[scripted], actions[scripted])
+    layered = avoid_agents(cfg.spec, obs, actions.copy())
+    np.testing.assert_array_equal(out[~scripted], layered[~scripted])
+    off = Trainer(_cfg(), tmp_path / "off")
+    assert off._executed(obs, actions) is actions
+
+
+def test_a_short_role_critic_run_with_the_layer_and_cloning_trains_and_resumes(tmp_path):
+    spec = {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 1}, "avoidance": {"enabled": True}}
+    cfg = _cfg(spec, teacher="classical", imitation_steps=60, imitation_updates=2, imitation_batch=128,
+               imitation_weight=1.0, imitation_decay_steps=40, share_params=True, obs_scaling=True,
+               checkpoint_every=100)
+    first = Trainer(cfg, tmp_path / "run")
+    result = first.run(progress=False)
+    assert result.env_steps == 200 and result.updates > 0
+    rows = (tmp_path / "run" / "metrics.csv").read_text().splitlines()
+    last = dict(zip(rows[0].split(","), rows[-1].split(",")))
+    assert np.isfinite(float(last["critic_loss"])) and np.isfinite(float(last["actor_loss"]))
+    assert (tmp_path / "run" / "actors_imitation.pt").is_file()
+    longer = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=250))
+    again = Trainer(longer, tmp_path / "run", resume=True)
+    assert again.env_step == 200 and isinstance(again.agent, RoleCriticMADDPG)
+    assert again.run(progress=False).env_steps == 250
