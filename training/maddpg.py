@@ -120,20 +120,24 @@ def clip_grad_norm_per_agent(params: Sequence[torch.Tensor], max_norm: float) ->
     """Scale the gradients of stacked parameters (leading dim = agent) so that each agent's global norm is at
     most ``max_norm``; returns the per-agent norms before clipping ``[N]``."""
     grads = [p.grad for p in params if p.grad is not None]
-    sq = torch.stack([g.pow(2).reshape(g.shape[0], -1).sum(1) for g in grads]).sum(0)
+    sq = torch.stack([torch.linalg.vector_norm(g.reshape(g.shape[0], -1), dim=1) for g in grads]).pow(2).sum(0)
     norms = sq.sqrt()
     if max_norm > 0:
         scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-        for g in grads:
-            g.mul_(scale.view(-1, *([1] * (g.dim() - 1))))
+        torch._foreach_mul_(grads, [scale.view(-1, *([1] * (g.dim() - 1))) for g in grads])
     return norms
 
 
 @torch.no_grad()
 def soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
-    """target <- tau x online + (1 - tau) x target."""
-    for t, o in zip(target.parameters(), online.parameters()):
-        t.lerp_(o, tau)
+    """target <- tau x online + (1 - tau) x target (one fused call over every tensor)."""
+    torch._foreach_lerp_(list(target.parameters()), [p.detach() for p in online.parameters()], tau)
+
+
+def adam(params: Any, lr: float) -> torch.optim.Adam:
+    """Adam with the fused kernel (one call per step for every tensor; the same algorithm as the per-tensor loop,
+    several times cheaper for a learner of a few dozen small tensors)."""
+    return torch.optim.Adam(params, lr=lr, fused=True)
 
 
 def global_state_dim(spec: SwarmSpec) -> int:
@@ -222,8 +226,8 @@ class MADDPG:
             mod.to(dev)
         for mod in (self.actors_tgt, self.critics_tgt):
             mod.requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actors.parameters(), lr=cfg.actor_lr)
-        self.critic_opt = torch.optim.Adam(self.critics.parameters(), lr=cfg.critic_lr)
+        self.actor_opt = adam(self.actors.parameters(), cfg.actor_lr)
+        self.critic_opt = adam(self.critics.parameters(), cfg.critic_lr)
         learn = torch.ones(n, device=dev)
         if cfg.evaders in ("static", "scripted"):  # scripted evaders' actions come from the trainer
             learn[spec.team.n_team:] = 0.0
