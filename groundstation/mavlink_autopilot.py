@@ -64,7 +64,7 @@ class Autopilot(str, enum.Enum):
 
     @classmethod
     def from_heartbeat(cls, autopilot: int) -> "Autopilot | None":
-        from groundstation.mavlink_link import mavlink_module
+        from groundstation.mavlink_wire import mavlink_module
         mav = mavlink_module()
         return {mav.MAV_AUTOPILOT_ARDUPILOTMEGA: cls.ARDUPILOT, mav.MAV_AUTOPILOT_PX4: cls.PX4}.get(autopilot)
 
@@ -144,7 +144,7 @@ def _lon_scale(origin: GlobalOrigin) -> float:
 
 def fence_items(fence: "FenceConfig", origin: GlobalOrigin) -> list[dict[str, Any]]:
     """The fence's polygon and keep-out circles as ``MISSION_ITEM_INT`` fields (global frame), in order."""
-    from groundstation.mavlink_link import mavlink_module
+    from groundstation.mavlink_wire import mavlink_module
     mav = mavlink_module()
     items: list[dict[str, Any]] = []
     poly = fence.polygon

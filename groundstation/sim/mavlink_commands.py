@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from groundstation.mavlink_autopilot import mode_from_set_mode
-from groundstation.mavlink_link import FORCE_DISARM_MAGIC, TYPE_MASK_IGNORE_POSITION, TYPE_MASK_IGNORE_VELOCITY, \
+from groundstation.mavlink_wire import FORCE_DISARM_MAGIC, TYPE_MASK_IGNORE_POSITION, TYPE_MASK_IGNORE_VELOCITY, \
     ned_to_enu
 
 logger = logging.getLogger(__name__)

@@ -48,10 +48,13 @@ import numpy as np
 
 from groundstation.mavlink_autopilot import (COPTER_MODES, PX4_MODES, Autopilot, GlobalOrigin, mode_from_set_mode,
                                              px4_custom_mode)
-from groundstation.mavlink_link import enu_to_ned, mavlink_module, open_mavlink
+from groundstation.mavlink_wire import enu_to_ned, mavlink_module, open_mavlink
 from groundstation.sim.flight_model import QuadBatch, QuadParams
 from groundstation.sim.mavlink_commands import AIRBORNE, AutopilotCommands, VehicleMode
 from groundstation.sim.mavlink_fence import FenceReceiver, VehicleFence
+from groundstation.sim.mavlink_modes import LAND_PAUSE, VehicleModes
+
+__all__ = ["ARDUPILOT_PARAMS", "LAND_PAUSE", "PX4_PARAMS", "MavlinkVehicle", "VehicleConfig", "VehicleMode"]
 
 logger = logging.getLogger(__name__)
 
@@ -63,8 +66,6 @@ PX4_PARAMS = {"NAV_DLL_ACT": 0.0, "COM_DL_LOSS_T": 10.0, "COM_OF_LOSS_T": 1.0, "
               "COM_DISARM_LAND": 2.0, "MIS_TAKEOFF_ALT": 2.5, "MPC_LAND_SPEED": 0.7, "MPC_TKO_SPEED": 1.5,
               "RTL_RETURN_ALT": 60.0, "GF_ACTION": 2.0, "GF_MAX_VER_DIST": 0.0}
 """PX4 parameter defaults the simulator uses (``commander_params.c``, ``navigator`` and ``mc_pos_control`` params)."""
-LAND_PAUSE = 4.0
-"""A failsafe LAND waits this long before descending [s] (``LAND_WITH_DELAY_MS`` in ``ArduCopter/config.h``)."""
 
 
 @dataclass(frozen=True)
@@ -97,7 +98,7 @@ class VehicleConfig:
     """Flight model (time constant, speed and acceleration limits, estimation noise, battery)."""
 
 
-class MavlinkVehicle(AutopilotCommands):
+class MavlinkVehicle(VehicleModes, AutopilotCommands):
     """One simulated vehicle on its own thread. ``start()`` / ``stop()`` or use as a context manager."""
 
     def __init__(self, connection: str, config: VehicleConfig | None = None,
@@ -333,96 +334,6 @@ class MavlinkVehicle(AutopilotCommands):
         if self.px4:
             self.flight_mode = "LOITER"  # PX4 holds at the end of AUTO.TAKEOFF
 
-    # ---- failsafes ---------------------------------------------------------------------------------
-
-    def _failsafes(self, now: float) -> None:
-        p = self.quad.pos[0]
-        silent = now - self._last_gcs
-        if self.px4:
-            if self.flight_mode == "OFFBOARD" and now - self._stream_t > self.params["COM_OF_LOSS_T"] \
-                    and self.mode in AIRBORNE:
-                action = {3: "RTL", 4: "LAND"}.get(int(self.params["COM_OBL_RC_ACT"]), "LOITER")
-                self._failsafe(f"offboard setpoints lost for {now - self._stream_t:.2f} s", action)
-            dll = {1: "LOITER", 2: "RTL", 3: "LAND"}.get(int(self.params["NAV_DLL_ACT"]))
-            if dll and math.isfinite(self._last_gcs) and silent > self.params["COM_DL_LOSS_T"] \
-                    and not self._gcs_failsafe and self.armed:
-                self._gcs_failsafe = True
-                if self.mode in AIRBORNE:
-                    self._failsafe(f"no GCS heartbeat for {silent:.2f} s", dll)
-        elif int(self.params["FS_GCS_ENABLE"]) and math.isfinite(self._last_gcs) \
-                and silent > self.params["FS_GCS_TIMEOUT"] and not self._gcs_failsafe:
-            # ArduCopter events.cpp failsafe_gcs_on_event: once per loss; landed -> disarm; else the action
-            self._gcs_failsafe = True
-            if self.mode is VehicleMode.IDLE:
-                self._disarm("GCS failsafe on the ground")
-            elif self.mode in AIRBORNE:
-                action = "LAND" if int(self.params["FS_GCS_ENABLE"]) in (4, 5, 7) else "RTL"
-                # do_failsafe_action(LAND): set_mode_land_with_pause
-                self._failsafe(f"no GCS heartbeat for {silent:.2f} s", action, pause=True)
-        if self._fence_on() and self.mode in AIRBORNE and not self.fence.contains(p, self.fence_ceiling):
-            self.fence_breaches += 1
-            if self.px4:
-                action = {2: "LOITER", 3: "RTL", 5: "LAND"}.get(int(self.params["GF_ACTION"]))
-            else:
-                action = {1: "RTL", 2: "LAND"}.get(int(self.params["FENCE_ACTION"]), "LAND")
-            if action is not None:  # ArduCopter fence.cpp: a plain set_mode(LAND), no pause
-                self._failsafe(f"fence breached at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})", action)
-        if not self.px4 and self.mode is VehicleMode.VELOCITY \
-                and now - self._setpoint_t > max(self.params["GUID_TIMEOUT"], 0.1):
-            # ModeGuided: a velocity target older than GUID_TIMEOUT is replaced by a stop
-            self._target = p.copy()
-            self.mode = VehicleMode.HOLD
-
-    def _failsafe(self, why: str, action: str, pause: bool = False) -> None:
-        if self.flight_mode == action:
-            return
-        logger.warning("vehicle %d: %s: %s", self.config.system_id, why, action)
-        self.failsafe_landings += action in ("LAND", "RTL")
-        self._enter_mode(action, pause=pause and action == "LAND")
-
-    # ---- modes -------------------------------------------------------------------------------------
-
-    def _enter_mode(self, name: str, pause: bool = False) -> None:
-        """Switch the autopilot's mode and what the vehicle does in it."""
-        if name != self.flight_mode:
-            logger.info("vehicle %d: mode %s -> %s", self.config.system_id, self.flight_mode, name)
-        self.flight_mode = name
-        airborne = self.mode in AIRBORNE or self.mode is VehicleMode.LAND
-        if name == "LAND":
-            if airborne:
-                self._start_land(pause)
-            elif self.mode is VehicleMode.IDLE and not self.px4:
-                self._disarm("LAND on the ground")
-        elif name == "RTL" and airborne:
-            z = max(self.quad.pos[0, 2], self._rtl_altitude())
-            self._target = np.array([self.home[0], self.home[1], z])
-            self.mode = VehicleMode.RTL
-        elif name == "TAKEOFF":
-            pass  # started by the takeoff command (or by arming while in TAKEOFF)
-        elif airborne:  # GUIDED, LOITER, OFFBOARD, POSCTL, BRAKE...: hold where it is until told otherwise
-            self._target = self._stopping_point()
-            self.mode = VehicleMode.HOLD
-
-    def _rtl_altitude(self) -> float:
-        p = self.params
-        alt = self.home[2] + (p["RTL_RETURN_ALT"] if self.px4 else p["RTL_ALT"] / 100.0)
-        margin = 0.0 if self.px4 else p["FENCE_MARGIN"]
-        return min(alt, self.fence_ceiling - margin)
-
-    def _stopping_point(self) -> np.ndarray:
-        return self.quad.pos[0] + self.quad.vel[0] / max(self.config.quad.kp_pos, 1e-3)
-
-    def _start_land(self, pause: bool = False) -> None:
-        self._target = self.quad.pos[0].copy()
-        self._land_pause_until = self.clock() + LAND_PAUSE if pause else -math.inf
-        self.mode = VehicleMode.LAND
-        self.flight_mode = "LAND"
-
-    def _disarm(self, why: str) -> None:
-        logger.info("vehicle %d: disarmed (%s)", self.config.system_id, why)
-        self.mode = VehicleMode.DISARMED
-        self._landed_at = None
-        self._descent = None
 
     def reboot(self) -> None:
         """Back to disarmed with fresh defaults (clears a flight termination)."""
