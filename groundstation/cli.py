@@ -16,14 +16,13 @@ import threading
 import time
 from pathlib import Path
 
+from groundstation.cli_common import (UsageError, add_no_separation, add_view, check_actor_files, check_fence_arena,
+                                      check_port_range, opt_str, read_input)
+from groundstation.cli_fleet import _add_fly, _add_land, _add_status
 from groundstation.sim.swarm import DEFAULT_BASE_PORT, SimError, SimSwarm
-from runtime.cliutil import (EXIT_USAGE, ArgumentParser, check_in_file, int_in, models_dir, nonneg_int, out_file,
+from runtime.cliutil import (EXIT_USAGE, ArgumentParser, int_in, models_dir, nonneg_int, out_file,
                              out_picture, port, positive_float)
 from runtime.spec import ENGINES, SpecError
-
-
-class UsageError(Exception):
-    """A bad argument or input file found before any drone flies; the message names the option and the fix."""
 
 
 def _add_sim(subparsers: argparse._SubParsersAction) -> None:
@@ -55,8 +54,8 @@ def _run_sim(args: argparse.Namespace) -> int:
     if args.drones + args.mavlink < 1:
         raise UsageError(f"--drones {args.drones} --mavlink {args.mavlink}: no drone to simulate; give at least one, "
                          f"e.g. --drones 3, or --drones 0 --mavlink 1")
-    _check_port_range("--base-port", args.base_port, args.drones)
-    _check_port_range("--mavlink-port", args.mavlink_port, args.mavlink)
+    check_port_range("--base-port", args.base_port, args.drones)
+    check_port_range("--mavlink-port", args.mavlink_port, args.mavlink)
     try:
         socket.getaddrinfo(args.host, None, type=socket.SOCK_DGRAM)
     except (socket.gaierror, UnicodeError) as exc:
@@ -100,12 +99,6 @@ def _run_sim(args: argparse.Namespace) -> int:
         _stop_sims(sims, vehicles)
     print("simulators stopped", flush=True)
     return 0
-
-
-def _check_port_range(option: str, base: int, n: int) -> None:
-    """Drone i listens on ``base + i``: the last one must still be a port."""
-    if n and base + n - 1 > 65535:
-        raise UsageError(f"{option}: {base} + {n} drones passes port 65535; use a base port <= {65536 - n}")
 
 
 def _stop_sims(sims, vehicles) -> None:
@@ -152,7 +145,7 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                         "(.jsonl)")
     p.add_argument("--plot", type=out_picture, default=None, metavar="PNG",
                    help="draw the trajectories to this picture (.png, .pdf, .svg, ...)")
-    _add_view(p)
+    add_view(p)
     p.add_argument("--models", default=d.models, help=f"models folder from swarm-export onnx (default {d.models})")
     p.add_argument("--engine", choices=ENGINES, default=d.engine,
                    help="how the actors run: onnxruntime (default) or compiled (the same ONNX actors compiled with "
@@ -168,64 +161,17 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                    help="TOML with a [flight] table (and optionally a [separation] table)")
     p.add_argument("--seed", type=nonneg_int, default=d.seed, help="obstacles, start positions, noise (default 0)")
     p.add_argument("--base-port", type=port, default=None, help="UDP port of drone 0 (default: a free range)")
-    _add_no_separation(p)
+    add_no_separation(p)
     p.add_argument("--sim-in-process", action="store_true",
                    help="run the simulated Crazyflies in the ground station's interpreter (default: a process of "
                         "their own, as real drones are; in-process they share its GIL), for comparison")
     p.set_defaults(func=_run_demo)
 
 
-def _add_view(p: argparse.ArgumentParser) -> None:
-    from groundstation.liveview.server import DEFAULT_PORT
-    p.add_argument("--view", nargs="?", type=port, const=DEFAULT_PORT, default=None, metavar="PORT",
-                   help=f"serve the live view on http://127.0.0.1:PORT/ during the flight (default port "
-                        f"{DEFAULT_PORT}): the arena, every drone, events, metrics; land all, land one, emergency "
-                        f"stop")
-
-
-def _add_no_separation(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--no-separation", action="store_true",
-                   help="fly without the separation filter, for comparison only: drones may touch and crash")
-
-
-def _input(option: str, path, load, tables: tuple[str, ...] = ()):
-    """``load(path)``, with a missing or unreadable file, one without any of ``tables`` (the loaders would take
-    their defaults: a wrong file passes silently) or a wrong value in it as a ``UsageError`` naming ``option``
-    (the loaders' messages name the file and the key)."""
-    from runtime.policy import PolicyError
-    from runtime.spec import load_toml
-    try:
-        check_in_file(path)
-    except argparse.ArgumentTypeError as exc:
-        raise UsageError(f"{option}: {exc}") from None
-    try:
-        if tables and not set(tables) & set(load_toml(path)):
-            raise UsageError(f"{option}: {str(path)!r} has no " + " or ".join(f"[{t}]" for t in tables)
-                             + " table: is it the right file?")
-        return load(path)
-    except (SpecError, PolicyError) as exc:
-        raise UsageError(f"{option}: {exc}") from None
-
-
-def _check_actor_files(option: str, manifest) -> None:
-    """Every actor file of ``manifest`` is there and is the one exported (sha256): ``load_models`` checks it too,
-    but only after the links are up and preflight passed."""
-    import hashlib
-    for entry in manifest.agents:
-        if not entry.file.is_file():
-            raise UsageError(f"{option}: no ONNX model at {str(entry.file)!r} (agent {entry.id}): re-export with "
-                             f"`swarm-export onnx --run runs/NAME --out {manifest.folder}`")
-        if hashlib.sha256(entry.file.read_bytes()).hexdigest() != entry.sha256:
-            raise UsageError(f"{option}: {str(entry.file)!r} is not the file the manifest lists (sha256 differs): "
-                             f"it was damaged or replaced; re-export with `swarm-export onnx --run runs/NAME --out "
-                             f"{manifest.folder}`")
-
-
 def _check_demo(args: argparse.Namespace) -> None:
     """Every input of ``swarm-gs demo`` read and checked before a simulator starts, so that a wrong value is one
     line naming its option rather than an error after a 30 s flight (``run_demo`` reads them again)."""
     from groundstation.flight import FlightConfig
-    from groundstation.fence import check_arena
     from groundstation.positioning import AnchorLayout
     from groundstation.safety import FenceConfig
     from groundstation.separation import SeparationConfig
@@ -247,28 +193,21 @@ def _check_demo(args: argparse.Namespace) -> None:
         manifest = read_manifest(models_dir(args.models))
     except (PolicyError, argparse.ArgumentTypeError) as exc:
         raise UsageError(f"--models: {exc}") from None
-    _check_actor_files("--models", manifest)
-    spec = _input("--spec", args.spec, SwarmSpec.from_toml, ("spec",)) if args.spec else manifest.spec
+    check_actor_files("--models", manifest)
+    spec = read_input("--spec", args.spec, SwarmSpec.from_toml, ("spec",)) if args.spec else manifest.spec
     if spec.hash != manifest.spec.hash:  # preflight would refuse it too, after starting every simulator
         raise UsageError(f"--spec {args.spec}: spec {spec.hash}, but the models in {args.models} were exported for "
                          f"spec {manifest.spec.hash}: give the spec they were trained on, or leave --spec out")
     if args.flight_config:
-        _input("--flight-config", args.flight_config, FlightConfig.from_toml, ("flight", "separation"))
-        _input("--flight-config", args.flight_config,
+        read_input("--flight-config", args.flight_config, FlightConfig.from_toml, ("flight", "separation"))
+        read_input("--flight-config", args.flight_config,
                lambda p: SeparationConfig.from_dict(load_toml(p).get("separation", {})))
-    fence = _input("--fence", args.fence, lambda p: FenceConfig.from_toml(p, spec=manifest.spec), ("fence",))
-    try:
-        check_arena(fence, manifest.spec, f"--fence {args.fence}", f"the models in {args.models}")
-    except SpecError as exc:
-        raise UsageError(str(exc)) from None
-    _input("--anchors", args.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence), ("lps",))
+    fence = read_input("--fence", args.fence, lambda p: FenceConfig.from_toml(p, spec=manifest.spec), ("fence",))
+    check_fence_arena(fence, manifest.spec, f"--fence {args.fence}", f"the models in {args.models}")
+    read_input("--anchors", args.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence), ("lps",))
     if args.base_port is not None:
-        _check_port_range("--base-port", args.base_port, spec.n_agents)
+        check_port_range("--base-port", args.base_port, spec.n_agents)
     # the --kill-link drone is resolved by run_demo, also before any simulator starts
-
-
-def _str(path) -> str | None:
-    return None if path is None else str(path)
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -278,8 +217,8 @@ def _run_demo(args: argparse.Namespace) -> int:
     _check_demo(args)
     opts = DemoOptions(duration=args.duration, speed=args.speed, kill_link=args.kill_link, loss=args.loss,
                        models=args.models, engine=args.engine, spec=args.spec, fence=args.fence, anchors=args.anchors,
-                       flight=args.flight_config, seed=args.seed, json_path=_str(args.json), log_path=_str(args.log),
-                       plot_path=_str(args.plot), base_port=args.base_port,
+                       flight=args.flight_config, seed=args.seed, json_path=opt_str(args.json),
+                       log_path=opt_str(args.log), plot_path=opt_str(args.plot), base_port=args.base_port,
                        telemetry_period_ms=args.telemetry_period_ms, separation=not args.no_separation,
                        sim_in_process=args.sim_in_process, view_port=args.view)
     try:
@@ -294,153 +233,6 @@ def _run_demo(args: argparse.Namespace) -> int:
     for flag, path in (("json", args.json), ("log", args.log), ("plot", args.plot)):
         if path:
             print(f"wrote {path}")
-    return 0
-
-
-def _add_fleet_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--fleet", required=True, metavar="TOML",
-                   help="fleet file: drones by URI and team, models, fence (see configs/fleet_example.toml)")
-
-
-def _load_fleet(path: str, flying: bool = False):
-    """The fleet file's fleet and flight tables, checked before any radio opens; with ``flying`` also the
-    separation table and every file it names (models, spec, fence, anchors), which ``fly`` reads again.
-    A wrong one is a ``UsageError`` naming ``--fleet`` and the key."""
-    from groundstation.fence import check_arena
-    from groundstation.fleet import FleetConfig, load_separation, obstacles_from_fence
-    from groundstation.positioning import AnchorLayout
-    from groundstation.safety import FenceConfig
-    from runtime.policy import PolicyError, read_manifest
-    from runtime.spec import SwarmSpec
-    fleet, flight = _input("--fleet", path, FleetConfig.from_toml)
-    if not flying:
-        return fleet, flight, None
-    separation = _input("--fleet", path, load_separation)
-    where = f"--fleet {path}: fleet"
-    try:
-        manifest = read_manifest(fleet.models)
-    except PolicyError as exc:
-        raise UsageError(f"{where}.models: {exc}") from None
-    _check_actor_files(f"{where}.models", manifest)
-    spec = _input(f"{where}.spec", fleet.spec, SwarmSpec.from_toml, ("spec",)) if fleet.spec else SwarmSpec()
-    if spec.hash != manifest.spec.hash:  # preflight refuses it too, once every radio link is up
-        raise UsageError(f"{where}.spec: spec {spec.hash} ({fleet.spec or 'the default spec'}), but the models in "
-                         f"{fleet.models} were exported for spec {manifest.spec.hash}: set fleet.spec to the spec "
-                         f"they were trained on")
-    fence = _input(f"{where}.fence", fleet.fence, lambda p: FenceConfig.from_toml(p, spec=manifest.spec), ("fence",))
-    try:
-        check_arena(fence, manifest.spec, f"{where}.fence {fleet.fence}", f"the models in {fleet.models}")
-    except SpecError as exc:
-        raise UsageError(str(exc)) from None
-    if fleet.anchors:
-        _input(f"{where}.anchors", fleet.anchors, lambda p: AnchorLayout.from_toml(p, fence=fence), ("lps",))
-    try:
-        obstacles_from_fence(fence, spec)
-    except SpecError as exc:
-        raise UsageError(f"{where}.fence {fleet.fence}: {exc}") from None
-    return fleet, flight, separation
-
-
-def _add_fly(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("fly", help="fly real drones (radio:// URIs from a fleet file)",
-                              description="Preflight, role assignment, staggered takeoff, the mission with the "
-                                          "exported actors, landing. Ctrl-C lands everyone; a second Ctrl-C cuts "
-                                          "every motor (emergency stop).")
-    _add_fleet_arg(p)
-    p.add_argument("--duration", type=positive_float, default=60.0, help="mission time [s] (default 60)")
-    p.add_argument("--log", type=out_file, default=None, metavar="PATH",
-                   help="write the flight log here: MCAP for Foxglove when PATH ends in .mcap, else JSON lines "
-                        "(.jsonl)")
-    _add_view(p)
-    _add_no_separation(p)
-    p.set_defaults(func=_run_fly)
-
-
-def _fleet_errors():
-    from groundstation.flight import PreflightError
-    from groundstation.link import LinkError
-    from runtime.policy import PolicyError
-    from groundstation.liveview.server import ViewError
-    from runtime.spec import SpecError
-    return (PreflightError, LinkError, PolicyError, SpecError, ViewError)
-
-
-def _run_fly(args: argparse.Namespace) -> int:
-    import dataclasses
-
-    from groundstation.fleet import fly
-    fleet, flight, separation = _load_fleet(args.fleet, flying=True)
-    if args.no_separation:
-        separation = dataclasses.replace(separation, enabled=False)
-    stop = threading.Event()
-    presses = []
-
-    def on_sigint(signum, frame):
-        presses.append(signum)
-        if len(presses) == 1:
-            print("landing everyone (Ctrl-C again: emergency stop)", file=sys.stderr, flush=True)
-            stop.set()
-        else:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
-            raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGINT, on_sigint)
-        try:
-            res = fly(fleet, flight, args.duration, _str(args.log), stop, separation=separation, echo=print,
-                      view_port=args.view)
-        finally:
-            signal.signal(signal.SIGINT, previous)
-    except _fleet_errors() as exc:
-        print(f"swarm-gs fly: error: {exc}", file=sys.stderr)
-        return 2
-    for t, drone, kind, detail in res["events"]:
-        print(f"  t={t:8.2f} s {drone or '':>6} {kind}: {detail}")
-    sep = res["separation"]
-    sep_line = (f"separation: {sep['solves']} solves, {sep['braked_setpoints']} braked setpoints" if sep["enabled"]
-                else "separation OFF (--no-separation)")
-    print(f"final: {res['final_status']}; geofence violations {res['geofence_violations']}; {sep_line}")
-    return 0
-
-
-def _add_land(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("land", help="land every drone of a fleet that is still flying")
-    _add_fleet_arg(p)
-    p.set_defaults(func=_run_land)
-
-
-def _run_land(args: argparse.Namespace) -> int:
-    from groundstation.fleet import land_fleet
-    fleet, _, _ = _load_fleet(args.fleet)
-    try:
-        out = land_fleet(fleet)
-    except _fleet_errors() as exc:
-        print(f"swarm-gs land: error: {exc}", file=sys.stderr)
-        return 2
-    for d, s in out.items():
-        print(f"{d}: {s}")
-    return 0
-
-
-def _add_status(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("status", help="connect to every drone of a fleet and print its state")
-    _add_fleet_arg(p)
-    p.set_defaults(func=_run_status)
-
-
-def _run_status(args: argparse.Namespace) -> int:
-    from groundstation.fleet import fleet_status
-    fleet, _, _ = _load_fleet(args.fleet)
-    try:
-        rows = fleet_status(fleet)
-    except _fleet_errors() as exc:
-        print(f"swarm-gs status: error: {exc}", file=sys.stderr)
-        return 2
-    for r in rows:
-        pos = "-" if r["position"] is None else "(" + ", ".join(f"{c:+.2f}" for c in r["position"]) + ")"
-        print(f"{r['drone']:>6} {r['uri']:<32} {r['team']:<8} {r['state']:<9} {r['battery_v'] or '-':>5} V  "
-              f"{pos}  var {r['position_variance'] if r['position_variance'] is not None else '-'}  "
-              f"fence {r['fence']}  link {r['link_quality']}  {r['telemetry_per_s']}/s")
     return 0
 
 
