@@ -191,11 +191,11 @@ def avoid_rows(obs, act, params, layout):
                 break
         if not finite:
             continue
-        x, y = float(obs[b, sp]), float(obs[b, sp + 1])
+        x, y = np.float64(obs[b, sp]), np.float64(obs[b, sp + 1])
         m = 0
         for k in range(n_tm):  # teammates: half the budget each
             o = tm0 + k * MATE_COLUMNS
-            dx, dy = float(obs[b, o]), float(obs[b, o + 1])
+            dx, dy = np.float64(obs[b, o]), np.float64(obs[b, o + 1])
             d = math.sqrt(dx * dx + dy * dy)
             if obs[b, o + 4] > 0.5 and d > 1e-9:
                 nx[m], ny[m] = -dx / d, -dy / d
@@ -210,18 +210,18 @@ def avoid_rows(obs, act, params, layout):
             m += 1
         for k in range(n_ob):
             o = ob0 + k * 3
-            dx, dy, r = float(obs[b, o]), float(obs[b, o + 1]), float(obs[b, o + 2])
+            dx, dy, r = np.float64(obs[b, o]), np.float64(obs[b, o + 1]), np.float64(obs[b, o + 2])
             d = math.sqrt(dx * dx + dy * dy)
             if r > 0.0 and d > 1e-9:
                 nx[m], ny[m] = -dx / d, -dy / d
                 lim[m] = _limit(d - r - own_r, m_obs, braking, dt)
                 m += 1
-        wx, wy = float(act[b, 0]) * vmax, float(act[b, 1]) * vmax
+        wx, wy = np.float64(act[b, 0]) * vmax, np.float64(act[b, 1]) * vmax
         speed = math.sqrt(wx * wx + wy * wy)
         if speed > vmax:  # the world flies at most max_speed: the wish as the world would take it
             wx, wy = wx * vmax / speed, wy * vmax / speed
         ex[0], ey[0], er[0] = 0.0, 0.0, vmax
-        ex[1], ey[1], er[1] = float(obs[b, sv]), float(obs[b, sv + 1]), amax * dt * (1.0 - REACH_SHRINK)
+        ex[1], ey[1], er[1] = np.float64(obs[b, sv]), np.float64(obs[b, sv + 1]), amax * dt * (1.0 - REACH_SHRINK)
         if not nearest_feasible(wx, wy, nx, ny, lim, m, ex, ey, er, 2, out):
             if not nearest_feasible(wx, wy, nx, ny, lim, m, ex, ey, er, 1, out):
                 out[0], out[1] = 0.0, 0.0  # unreachable in exact arithmetic: zero is always safe
