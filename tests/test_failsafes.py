@@ -72,11 +72,14 @@ def flight(tmp_path_factory):
                     session.tracker.detach(stale)
                     out["stale_at"] = time.monotonic()
                     pilot.set_policy(faulty_actor, OnnxPolicy(nan_models / f"{faulty_actor}.onnx", spec=spec))
-                    time.sleep(2.5)
-                    # a loaded machine may still be bringing the drained drone down: give it time, not a pass
-                    wait_until(lambda: session.statuses()[drained] is not DroneStatus.LANDING, 5.0)
-                    # and the simulator may need a few more ticks to report the touchdown (motors idle)
-                    wait_until(lambda: all(on_ground(sims.truth(ids.index(x))) for x in (drained, stale, faulty)), 3.0)
+                    # the four outcomes, waited for (generously: a loaded machine is slow, never a pass): the cut
+                    # drone lost, the other three landed and on the ground in the simulator
+                    def handled() -> bool:
+                        st = session.statuses()
+                        return st[cut] is DroneStatus.LOST and all(
+                            st[x] is DroneStatus.LANDED and on_ground(sims.truth(ids.index(x)))
+                            for x in (drained, stale, faulty))
+                    wait_until(handled, 20.0)
                     out["statuses_in_flight"] = session.statuses()
                     out["roles_in_flight"] = dict(session.assignment.by_drone)
                     out["truth_in_flight"] = {d: sims.truth(i) for i, d in enumerate(ids)}

@@ -16,6 +16,7 @@ Run (slow, not in the default suite; nothing else should run on the machine):
     .venv/bin/python -m pytest -q -s -m slow tests/benchmarks/test_bench_demo_latency.py
 or standalone, printing JSON:
     .venv/bin/python tests/benchmarks/test_bench_demo_latency.py --rounds 3 --duration 20 [--view]
+    .venv/bin/python tests/benchmarks/test_bench_demo_latency.py --baseline d3ea195 [--view]   # before vs now
 """
 from __future__ import annotations
 
@@ -61,7 +62,8 @@ def _ws_client(url: str, stop, counts) -> None:
     asyncio.run(main())
 
 
-def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = False) -> dict:
+def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = False, root: Path = ROOT) -> dict:
+    """One demo flight; its models and configs from ``root`` (a checkout)."""
     import multiprocessing as mp
 
     from groundstation.demo import DemoOptions, run_demo
@@ -77,9 +79,9 @@ def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = Fals
     try:
         with tempfile.TemporaryDirectory(prefix="bench-demo-") as tmp:
             opts = DemoOptions(duration=duration, seed=seed, sim_in_process=sim_in_process,
-                               models=str(ROOT / "models" / "role_based"),
-                               fence=str(ROOT / "configs" / "fence.toml"),
-                               anchors=str(ROOT / "configs" / "lps_anchors.toml"), json_path=str(Path(tmp) / "d.json"))
+                               models=str(root / "models" / "role_based"),
+                               fence=str(root / "configs" / "fence.toml"),
+                               anchors=str(root / "configs" / "lps_anchors.toml"), json_path=str(Path(tmp) / "d.json"))
             t0 = time.monotonic()
             res = run_demo(opts, view=live)
             wall = time.monotonic() - t0
@@ -95,9 +97,58 @@ def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = Fals
             "ground_station_latency_p50_ms", "ground_station_latency_p99_ms", "ground_station_stalls",
             "drone_contacts", "landed", "mission_s")
     out = {k: res.get(k) for k in keys}
+    sep = res.get("separation") or {}
     out.update(simulator=res.get("simulator"), wall_s=round(wall, 1), load_avg_1m=os.getloadavg()[0],
-               view=view, view_frames=counts.value if counts is not None else None)
+               view=view, view_frames=counts.value if counts is not None else None,
+               separation={k: sep.get(k) for k in ("solve_ms_p50", "solve_ms_p99", "setpoints", "braked_setpoints",
+                                                   "stale_setpoints", "qp_setups", "qp_updates")})
     return out
+
+
+def fly_in_tree(tree: Path, sim_in_process: bool, duration: float, seed: int, view: bool = False) -> dict:
+    """``fly_once`` in a fresh interpreter whose ``groundstation`` and ``runtime`` are ``tree``'s (a checkout of
+    another commit: ``--baseline``), with that tree's models and configs."""
+    import subprocess
+    import sys
+    code = (f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+            f"from test_bench_demo_latency import fly_once; from pathlib import Path; "
+            f"print('RESULT ' + json.dumps(fly_once({sim_in_process}, {duration}, {seed}, {view}, "
+            f"Path({str(tree)!r}))))")
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    r = subprocess.run([sys.executable, "-c", code], cwd=tree, env=env, capture_output=True, text=True,
+                       timeout=600)
+    line = next((x for x in r.stdout.splitlines() if x.startswith("RESULT ")), None)
+    if r.returncode != 0 or line is None:
+        raise RuntimeError(f"the flight in {tree} failed (exit {r.returncode}): {r.stderr[-2000:]}")
+    return json.loads(line[len("RESULT "):])
+
+
+def measure_baseline(rev: str, rounds: int = 2, duration: float = 10.0, view: bool = False) -> dict:
+    """This checkout against commit ``rev`` (a git worktree of it), the demo with its simulators in their own
+    process (with ``view``: the live view open and one client connected), alternating, each flight in a fresh
+    interpreter."""
+    import shutil
+    import subprocess
+    tmp = Path(tempfile.mkdtemp(prefix="bench-baseline-"))
+    tree = tmp / "tree"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(tree), rev], check=True)
+    commit = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    names = (f"baseline {commit}", "this checkout")
+    runs: dict[str, list] = {n: [] for n in names}
+    try:
+        for r in range(rounds):
+            for name in (names if r % 2 == 0 else names[::-1]):
+                runs[name].append(fly_in_tree(tree if name == names[0] else ROOT, False, duration, r, view))
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=False)
+        shutil.rmtree(tmp, ignore_errors=True)
+    summary = {name: {"p50_ms_median": float(np.median([x["setpoint_latency_p50_ms"] for x in rs])),
+                      "p99_ms_median": float(np.median([x["setpoint_latency_p99_ms"] for x in rs])), "runs": rs}
+               for name, rs in runs.items()}
+    return {"drones": 12, "rounds": rounds, "duration_s": duration, "view": view, "arms": summary,
+            "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+            "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
 
 
 def measure_view(rounds: int = 2, duration: float = 10.0) -> dict:
@@ -166,5 +217,12 @@ if __name__ == "__main__":
     ap.add_argument("--view", action="store_true",
                     help="compare the live view open with one client connected against no view (issue 14) "
                          "instead of the simulators' placement")
+    ap.add_argument("--baseline", metavar="REV",
+                    help="compare this checkout against git commit REV (a worktree of it), simulators in their own "
+                         "process (with --view: both with the live view open and one client)")
     a = ap.parse_args()
-    print(json.dumps(measure_view(a.rounds, a.duration) if a.view else measure(a.rounds, a.duration), indent=1))
+    if a.baseline:
+        out = measure_baseline(a.baseline, a.rounds, a.duration, a.view)
+    else:
+        out = measure_view(a.rounds, a.duration) if a.view else measure(a.rounds, a.duration)
+    print(json.dumps(out, indent=1))
