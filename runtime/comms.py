@@ -18,7 +18,11 @@ velocity, when it was seen). The bytes travel over a ``Transport`` (``InProcessB
 Wire format: ``runtime.radio_msg`` (the one definition the Crazyflie app's C is generated from): one 60-byte
 peer-to-peer packet at most, positions and velocities in int16 fixed point (1 mm, 1 mm/s with the default
 spec), times in whole ms, up to three relayed sightings (freshest first, younger than the target memory).
-Airtime (``bandwidth_bps``) and ``max_bytes`` count the packet's bytes.
+Airtime (``bandwidth_bps``) and ``max_bytes`` count the packet's bytes. The packet budget: one packet per drone
+and control period, at most ``P2P_MAX_DATA_SIZE`` (60) bytes, on the channel the Crazyradio's CRTP link uses
+(the firmware's P2P documentation, ``docs/functional-areas/p2p_api.md``, advises polling the link at
+``rate_limit=100`` to leave airtime for them); the channel's share is not modelled by default (no airtime
+limit): ``bandwidth_bps`` models one sender's.
 
 By default a drone receives exactly what a Crazyflie peer would: the packet's values (the quantization error
 stays within ``radio_msg.Scales``) and its departure time in whole ms, from which latency is counted (from the
