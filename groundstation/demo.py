@@ -118,6 +118,9 @@ class DemoOptions:
     """True: the simulated Crazyflies in the ground station's interpreter (``--sim-in-process``; they then share
     its GIL, and its stalls pause their world). Default: a process of their own (``SimProcess``), as real drones
     are, talking CRTP over UDP."""
+    separation_process: bool = True
+    """The separation filter's joint solve in a process of its own (``JointFilter(process=True)``); False: in a
+    thread of the ground station's interpreter (for comparison, ``tests/benchmarks/test_bench_demo_latency.py``)."""
     view_port: int | None = None
     """Serve the live view (``groundstation.liveview``) on this port during the flight (``--view``); None: no
     view, 0: any free port."""
@@ -266,7 +269,8 @@ def _run(opts, spec, manifest, flight_cfg, separation, obstacles, fence, anchors
             by_id = dict(zip(ids, links))
             session = FlightSession(by_id, teams, fence, flight_cfg,
                                     actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents],
-                                    record=recorder, latency_probe=True, separation=separation)
+                                    record=recorder, latency_probe=True, separation=separation,
+                                    separation_process=opts.separation_process)
             if view is not None:
                 from groundstation.liveview import SessionSource
                 view.attach(SessionSource(session, the_scene, metrics=metrics.live))

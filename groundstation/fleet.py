@@ -206,7 +206,7 @@ def _fly(fleet, flight, duration, log_path, stop, echo, separation, spec, manife
     try:
         session = FlightSession(links, teams, fence, flight,
                                 actors=[{"id": a.id, "role": a.role.label} for a in manifest.agents], record=recorder,
-                                separation=separation)
+                                separation=separation, separation_process=True)
         if view is not None:
             from groundstation.liveview import SessionSource
             view.attach(SessionSource(session, the_scene, metrics=metrics.live))

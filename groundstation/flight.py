@@ -55,6 +55,8 @@ class FlightSession(SetpointPath, FailsafeSupervisor):
     ``links``: drone id -> open ``Link``. ``teams``: drone id -> ``"pursuer"`` (flies pursuer and scout
     actors) or ``"evader"``. ``actors``: the model manifest's actors (``roles.parse_actors`` input).
     ``record``: called with one dict per flight-log row and per event (``JsonlRecorder`` writes them).
+    ``separation_process``: the separation filter's joint solve runs in a process of its own instead of a thread
+    of this interpreter (``JointFilter(process=True)``: the demo and ``swarm-gs fly``).
     The session owns neither the links nor the simulator: close them after the session has exited.
     """
 
@@ -62,7 +64,7 @@ class FlightSession(SetpointPath, FailsafeSupervisor):
                  config: FlightConfig = FlightConfig(), actors: Iterable[Any] = (),
                  tracker: PositionTracker | None = None,
                  record: Callable[[dict], None] | None = None, latency_probe: bool = False,
-                 separation: SeparationConfig = SeparationConfig()) -> None:
+                 separation: SeparationConfig = SeparationConfig(), separation_process: bool = False) -> None:
         if not links:
             raise ValueError("FlightSession needs at least one link")
         missing = sorted(set(links) - set(teams))
@@ -83,7 +85,7 @@ class FlightSession(SetpointPath, FailsafeSupervisor):
         self._lock = threading.RLock()
         self._mission = False
         self._init_roles()
-        self._init_setpoint_path(links, separation, latency_probe)
+        self._init_setpoint_path(links, separation, latency_probe, separation_process)
         self._t0 = time.monotonic()
         self._init_supervisor()
 

@@ -466,6 +466,8 @@ class JointFilter:
     missing from a running filter's cache (it just began to fly), or a cache older than ``STALE_PERIODS``
     intervals (the solver thread was starved of CPU), gives a brake until the next solve. Not started (tests),
     the asking thread solves when the cache is an interval old. The cache's age is part of ``limits.latency``.
+    With ``process``, the solver thread only takes the snapshot and the solve itself runs in a child process
+    (``separation_worker.SolverProcess``; this thread again if the child is lost).
 
     Why a stale cache brakes instead of being solved again on the receive thread (as before): on a loaded
     machine the solver thread's solve is slow because the interpreter is busy, and then every receive thread
@@ -473,9 +475,16 @@ class JointFilter:
     held every setpoint for 50-300 ms. A brake costs one setpoint period of progress, never a stall."""
 
     def __init__(self, limits: Limits, gather: Callable[[], "Snapshot"], interval: float,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, process: bool = False) -> None:
         self.limits = limits
         self.interval = interval
+        self.process = process
+        """Started, solve in a process of its own (``separation_worker``) instead of this interpreter's thread
+        (the demo and ``swarm-gs fly``; tests keep the thread: a process costs a second to start)."""
+        self._worker = None
+        self._qp_base = (0, 0)
+        self.solver_place = "thread"
+        """Where the solves ran: "thread", "process", or "process, then thread" (the process was lost)."""
         self._gather = gather
         self._clock = clock
         self._lock = threading.Lock()
@@ -507,6 +516,13 @@ class JointFilter:
                           np.ones(2, dtype=bool), limits)
 
     def start(self) -> "JointFilter":
+        if self.process and self._worker is None:
+            from groundstation.separation_worker import SolverProcess
+            try:
+                self._worker = SolverProcess(self.limits).start()
+                self.solver_place = "process"
+            except RuntimeError as exc:
+                log.warning("%s: the separation filter solves in the ground station", exc)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="SeparationFilter", daemon=True)
         self._thread.start()
@@ -517,6 +533,10 @@ class JointFilter:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         self._thread = None
+        if self._worker is not None:
+            self._qp_base = (self._worker.setups, self._worker.updates)
+            self._worker.stop()
+            self._worker = None
 
     def _run(self) -> None:
         next_t = self._clock()
@@ -562,12 +582,17 @@ class JointFilter:
             cache: dict[str, tuple[np.ndarray, bool, bool]] = {}
             method = "none"
             if snap.ids:
-                res = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled,
-                                        self.limits, snap.previous, solver=self.solver)
-                method = res.method
+                out = self._solve_in_worker(snap)
+                if out is False:
+                    return  # no answer in time: the cache ages (and brakes once stale), as a slow solve here would
+                if out is None:
+                    res = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled,
+                                            self.limits, snap.previous, solver=self.solver)
+                    out = res.velocity, res.braked, res.method
+                velocity, braked, method = out
                 want = _cap_speed(np.asarray(snap.desired, dtype=float).reshape(-1, 2), self.limits.max_speed)
-                changed = ~np.all(np.abs(res.velocity - want) <= 1e-9, axis=1)
-                cache = {d: (res.velocity[k], bool(res.braked[k]), bool(changed[k]))
+                changed = ~np.all(np.abs(velocity - want) <= 1e-9, axis=1)
+                cache = {d: (velocity[k], bool(braked[k]), bool(changed[k]))
                          for k, d in enumerate(snap.ids) if snap.controlled[k]}
             with self._lock:
                 self._cache, self._t = cache, now
@@ -575,6 +600,26 @@ class JointFilter:
                 self.methods[method] = self.methods.get(method, 0) + 1
                 if len(self.solve_s) < 1_000_000:
                     self.solve_s.append(time.perf_counter() - t0)
+
+    def _solve_in_worker(self, snap: "Snapshot"):
+        """The worker's (velocity, braked, method); False when it did not answer in time; None without a worker
+        (none asked for, or it is gone: then this thread solves from now on)."""
+        worker = self._worker
+        if worker is None:
+            return None
+        from groundstation.separation_worker import SolverGone
+        try:
+            out = worker.solve(np.asarray(snap.positions, dtype=float), np.asarray(snap.velocities, dtype=float),
+                               np.asarray(snap.desired, dtype=float), np.asarray(snap.controlled, dtype=bool),
+                               np.asarray(snap.previous, dtype=float), timeout=STALE_PERIODS * self.interval)
+        except SolverGone as exc:
+            log.warning("%s: the separation filter solves in the ground station from now on", exc)
+            self._qp_base = (worker.setups, worker.updates)
+            worker.stop()
+            self._worker = None
+            self.solver_place = "process, then thread"
+            return None
+        return False if out is None else out
 
     def stats(self) -> dict[str, Any]:
         with self._lock:
@@ -584,4 +629,11 @@ class JointFilter:
             return {"solves": self.solves, "methods": dict(self.methods), "setpoints": self.setpoints, **timing,
                     "changed_setpoints": self.changed, "braked_setpoints": self.braked,
                     "unplaced_setpoints": self.unplaced, "stale_setpoints": self.stale,
-                    "qp_setups": self.solver.setups, "qp_updates": self.solver.updates}
+                    "qp_setups": self.solver.setups + self._qp_counts()[0],
+                    "qp_updates": self.solver.updates + self._qp_counts()[1],
+                    "solver": self.solver_place}
+
+    def _qp_counts(self) -> tuple[int, int]:
+        """OSQP set-ups and updates done by the worker (the one running, or the last one)."""
+        w = self._worker
+        return (w.setups, w.updates) if w is not None else self._qp_base

@@ -31,7 +31,7 @@ class SetpointPath(SessionCore):
     """Each link's receive thread computes and sends its drone's setpoints (``_make_callback``)."""
 
     def _init_setpoint_path(self, links: Mapping[str, Link], separation: SeparationConfig,
-                            latency_probe: bool) -> None:
+                            latency_probe: bool, separation_process: bool = False) -> None:
         if latency_probe and not all(link.uri.startswith("udp://") for link in links.values()):
             raise ValueError("latency_probe puts a timestamp in the yaw rate: simulated drones (udp://) only")
         self.latency_probe = latency_probe
@@ -49,7 +49,8 @@ class SetpointPath(SessionCore):
             # latency: the cached solution's age (one period) + the measurement's age and the link (one more)
             limits = Limits(separation.min_distance, self._period, self.fence.max_decel, self.fence.max_speed,
                             latency=2.0 * self._period)
-            self.separation = JointFilter(limits, self._separation_snapshot, interval=self._period)
+            self.separation = JointFilter(limits, self._separation_snapshot, interval=self._period,
+                                          process=separation_process)
 
     def _attach_setpoints(self) -> None:
         """Start computing setpoints: the tracker and then the setpoint callback on every link."""

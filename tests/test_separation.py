@@ -358,3 +358,49 @@ def test_config():
         SeparationConfig.from_dict({"min_distance": -0.3})
     with pytest.raises(SpecError, match=r"separation\.enabled: expected true or false"):
         SeparationConfig.from_dict({"enabled": 1})
+
+
+def _snapshot(seed: int) -> Snapshot:
+    pos, vel, want, prev = list(_closed_loop_states(seed + 3, seed=seed))[-1]
+    return Snapshot([f"cf{k}" for k in range(len(pos))], pos, vel, want, np.ones(len(pos), bool), prev)
+
+
+def test_the_solve_in_a_process_of_its_own_equals_the_threads_and_survives_losing_it():
+    """``JointFilter(process=True)``: the commands come from the child (same as this thread's solve within the
+    solver's tolerance); a killed child is replaced by this thread, and the setpoints go on."""
+    from flight_fixtures import wait_until
+    snap = _snapshot(7)
+    ref = filter_velocities(snap.positions, snap.velocities, snap.desired, snap.controlled, LIM, snap.previous)
+    assert ref.method == "qp"
+    jf = JointFilter(LIM, lambda: snap, interval=0.02, process=True).start()
+    try:
+        assert jf.stats()["solver"] == "process"
+        assert wait_until(lambda: jf.stats()["solves"] >= 3, timeout=30.0)
+        got = np.array([jf.command(d) for d in snap.ids])
+        np.testing.assert_allclose(got, ref.velocity, atol=2e-3)
+        assert jf.stats()["qp_setups"] + jf.stats()["qp_updates"] >= 3  # counted in the child
+        jf._worker._proc.kill()
+        assert wait_until(lambda: jf.stats()["solver"] == "process, then thread", timeout=30.0)
+        n = jf.stats()["solves"]
+        assert wait_until(lambda: jf.stats()["solves"] >= n + 3, timeout=30.0)
+        np.testing.assert_allclose(np.array([jf.command(d) for d in snap.ids]), ref.velocity, atol=2e-3)
+    finally:
+        jf.stop()
+    assert jf._worker is None
+
+
+def test_a_late_answer_from_the_solver_process_is_never_taken_for_a_newer_request():
+    from groundstation.separation_worker import SolverProcess
+    first, second = _snapshot(1), _snapshot(2)
+    worker = SolverProcess(LIM).start()
+    try:
+        args = lambda s: (s.positions, s.velocities, s.desired, s.controlled, s.previous)  # noqa: E731
+        assert worker.solve(*args(first), timeout=0.0) is None  # asked, not waited for: its answer comes late
+        velocity, braked, method = worker.solve(*args(second), timeout=30.0)
+        ref = filter_velocities(*args(second)[:4], LIM, second.previous)
+        assert method == ref.method
+        np.testing.assert_allclose(velocity, ref.velocity, atol=2e-3)
+        np.testing.assert_array_equal(braked, ref.braked)
+    finally:
+        worker.stop()
+    assert not worker.alive

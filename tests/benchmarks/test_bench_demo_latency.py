@@ -17,6 +17,7 @@ Run (slow, not in the default suite; nothing else should run on the machine):
 or standalone, printing JSON:
     .venv/bin/python tests/benchmarks/test_bench_demo_latency.py --rounds 3 --duration 20 [--view]
     .venv/bin/python tests/benchmarks/test_bench_demo_latency.py --baseline d3ea195 [--view]   # before vs now
+    .venv/bin/python tests/benchmarks/test_bench_demo_latency.py --separation   # the filter's solve: process/thread
 """
 from __future__ import annotations
 
@@ -62,8 +63,10 @@ def _ws_client(url: str, stop, counts) -> None:
     asyncio.run(main())
 
 
-def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = False, root: Path = ROOT) -> dict:
-    """One demo flight; its models and configs from ``root`` (a checkout)."""
+def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = False, root: Path = ROOT,
+             separation_process: bool | None = None) -> dict:
+    """One demo flight; its models and configs from ``root`` (a checkout). ``separation_process``: where the
+    separation filter solves (None: the demo's default)."""
     import multiprocessing as mp
 
     from groundstation.demo import DemoOptions, run_demo
@@ -78,7 +81,8 @@ def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = Fals
         client.start()
     try:
         with tempfile.TemporaryDirectory(prefix="bench-demo-") as tmp:
-            opts = DemoOptions(duration=duration, seed=seed, sim_in_process=sim_in_process,
+            extra = {} if separation_process is None else {"separation_process": separation_process}
+            opts = DemoOptions(duration=duration, seed=seed, sim_in_process=sim_in_process, **extra,
                                models=str(root / "models" / "role_based"),
                                fence=str(root / "configs" / "fence.toml"),
                                anchors=str(root / "configs" / "lps_anchors.toml"), json_path=str(Path(tmp) / "d.json"))
@@ -100,8 +104,8 @@ def fly_once(sim_in_process: bool, duration: float, seed: int, view: bool = Fals
     sep = res.get("separation") or {}
     out.update(simulator=res.get("simulator"), wall_s=round(wall, 1), load_avg_1m=os.getloadavg()[0],
                view=view, view_frames=counts.value if counts is not None else None,
-               separation={k: sep.get(k) for k in ("solve_ms_p50", "solve_ms_p99", "setpoints", "braked_setpoints",
-                                                   "stale_setpoints", "qp_setups", "qp_updates")})
+               separation={k: sep.get(k) for k in ("solver", "solve_ms_p50", "solve_ms_p99", "setpoints",
+                                                   "braked_setpoints", "stale_setpoints", "qp_setups", "qp_updates")})
     return out
 
 
@@ -147,6 +151,22 @@ def measure_baseline(rev: str, rounds: int = 2, duration: float = 10.0, view: bo
                       "p99_ms_median": float(np.median([x["setpoint_latency_p99_ms"] for x in rs])), "runs": rs}
                for name, rs in runs.items()}
     return {"drones": 12, "rounds": rounds, "duration_s": duration, "view": view, "arms": summary,
+            "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+            "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
+
+
+def measure_separation(rounds: int = 2, duration: float = 10.0) -> dict:
+    """The separation filter's joint solve in a process of its own (the demo's default) against a thread of the
+    ground station's interpreter, simulators in their own process, alternating."""
+    names = ("solve in a process", "solve in a thread")
+    runs: dict[str, list] = {n: [] for n in names}
+    for r in range(rounds):
+        for name in (names if r % 2 == 0 else names[::-1]):
+            runs[name].append(fly_once(False, duration, seed=r, separation_process=name == names[0]))
+    summary = {name: {"p50_ms_median": float(np.median([x["setpoint_latency_p50_ms"] for x in rs])),
+                      "p99_ms_median": float(np.median([x["setpoint_latency_p99_ms"] for x in rs])), "runs": rs}
+               for name, rs in runs.items()}
+    return {"drones": 12, "rounds": rounds, "duration_s": duration, "arms": summary,
             "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
             "utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime())}
 
@@ -220,8 +240,12 @@ if __name__ == "__main__":
     ap.add_argument("--baseline", metavar="REV",
                     help="compare this checkout against git commit REV (a worktree of it), simulators in their own "
                          "process (with --view: both with the live view open and one client)")
+    ap.add_argument("--separation", action="store_true",
+                    help="compare the separation filter solving in a process of its own against a thread")
     a = ap.parse_args()
-    if a.baseline:
+    if a.separation:
+        out = measure_separation(a.rounds, a.duration)
+    elif a.baseline:
         out = measure_baseline(a.baseline, a.rounds, a.duration, a.view)
     else:
         out = measure_view(a.rounds, a.duration) if a.view else measure(a.rounds, a.duration)
