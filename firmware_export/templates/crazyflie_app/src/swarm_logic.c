@@ -252,7 +252,6 @@ void swarm_build_observation(const swarm_world_t *w, uint32_t now_ms, float obs[
 
 /* -------------------------------------------------------------------------------------- avoidance */
 
-#if SWARM_AVOID_ENABLED
 /* Not NaN and not infinite, tested on the bits (no compiler flag can fold it away). */
 static int finite_bits(float v)
 {
@@ -261,8 +260,10 @@ static int finite_bits(float v)
     return (bits & 0x7f800000u) != 0x7f800000u;
 }
 
+#if SWARM_AVOID_ENABLED
 /* The layout swarm_avoid reads is the one the observation encoder writes (both generated from the spec). */
 typedef char swarm_check_avoid_layout[(SWARM_AVOID_SELF_POS == SWARM_OBS_SELF_POS_START
+    && SWARM_AVOID_SELF_VEL == SWARM_OBS_SELF_VEL_START
     && SWARM_AVOID_OBSTACLES == SWARM_OBS_OBSTACLES_START && SWARM_AVOID_N_OBSTACLES == SWARM_OBS_OBSTACLES_ROWS
     && SWARM_AVOID_OBSTACLE_COLS == SWARM_OBS_OBSTACLES_COLS && SWARM_AVOID_MATES == SWARM_OBS_TEAMMATES_START
     && SWARM_AVOID_N_MATES == SWARM_OBS_TEAMMATES_ROWS && SWARM_AVOID_MATE_COLS == SWARM_OBS_TEAMMATES_COLS
@@ -280,78 +281,196 @@ static float avoid_limit(float gap, float margin)
     step = g / SWARM_AVOID_DT;
     return step < brake ? step : brake;
 }
+
+/* One call's program (runtime.avoidance.nearest_feasible's arguments): the velocity nearest (wx, wy) with
+ * c . n_j >= -lim_j for j < m and |c - e_j| <= r_j for j < nd; disc 0 is the speed limit, disc 1 the velocities
+ * reachable in one control period. best, found and out: the nearest feasible candidate so far. */
+typedef struct {
+    float nx[SWARM_AVOID_N_CON], ny[SWARM_AVOID_N_CON], lim[SWARM_AVOID_N_CON];
+    float ex[2], ey[2], er[2];
+    int m, nd;
+    float wx, wy, best;
+    int found;
+    float out[2];
+} avoid_qp_t;
+
+/* runtime.avoidance._feasible, with the float32 slack SWARM_AVOID_FEASIBLE_TOL. */
+static int avoid_feasible(const avoid_qp_t *q, float cx, float cy)
+{
+    int j;
+    for (j = 0; j < q->m; ++j) {
+        if (cx * q->nx[j] + cy * q->ny[j] < -q->lim[j] - SWARM_AVOID_FEASIBLE_TOL) return 0;
+    }
+    for (j = 0; j < q->nd; ++j) {
+        const float dx = cx - q->ex[j], dy = cy - q->ey[j];
+        if (sqrtf(dx * dx + dy * dy) > q->er[j] + SWARM_AVOID_FEASIBLE_TOL) return 0;
+    }
+    return 1;
+}
+
+/* A candidate: kept when strictly nearer than the best so far and feasible (ties keep the earlier one). */
+static void avoid_try(avoid_qp_t *q, float cx, float cy)
+{
+    const float d = (cx - q->wx) * (cx - q->wx) + (cy - q->wy) * (cy - q->wy);
+    if (d < q->best && avoid_feasible(q, cx, cy)) {
+        q->best = d;
+        q->found = 1;
+        q->out[0] = cx;
+        q->out[1] = cy;
+    }
+}
+
+/* Two active constraints with a line: two lines, or line i and circle j. */
+static void avoid_try_line_pairs(avoid_qp_t *q)
+{
+    int i, j, k;
+    for (i = 0; i < q->m; ++i) {
+        for (j = i + 1; j < q->m; ++j) {
+            const float det = q->nx[i] * q->ny[j] - q->ny[i] * q->nx[j];
+            if (fabsf(det) < 1e-12f) continue;
+            avoid_try(q, (-q->lim[i] * q->ny[j] + q->lim[j] * q->ny[i]) / det,
+                      (-q->nx[i] * q->lim[j] + q->nx[j] * q->lim[i]) / det);
+        }
+    }
+    for (i = 0; i < q->m; ++i) {
+        for (j = 0; j < q->nd; ++j) {
+            const float s = q->ex[j] * q->nx[i] + q->ey[j] * q->ny[i] + q->lim[i];  /* centre to line, signed */
+            const float h2 = q->er[j] * q->er[j] - s * s;
+            float h, fx, fy;
+            if (h2 < 0.0f) continue;
+            h = sqrtf(h2);
+            fx = q->ex[j] - s * q->nx[i];
+            fy = q->ey[j] - s * q->ny[i];
+            for (k = -1; k <= 1; k += 2) {
+                const float sign = (float)k;
+                avoid_try(q, fx - sign * h * q->ny[i], fy + sign * h * q->nx[i]);
+            }
+        }
+    }
+}
+
+/* Two active circles. */
+static void avoid_try_circle_pairs(avoid_qp_t *q)
+{
+    int i, j, k;
+    for (i = 0; i < q->nd; ++i) {
+        for (j = i + 1; j < q->nd; ++j) {
+            const float dx = q->ex[j] - q->ex[i], dy = q->ey[j] - q->ey[i];
+            const float dd = sqrtf(dx * dx + dy * dy);
+            float a, h, px, py;
+            if (dd < 1e-12f || dd > q->er[i] + q->er[j] || dd < fabsf(q->er[i] - q->er[j])) continue;
+            a = (q->er[i] * q->er[i] - q->er[j] * q->er[j] + dd * dd) / (2.0f * dd);
+            h = q->er[i] * q->er[i] - a * a;
+            h = sqrtf(h > 0.0f ? h : 0.0f);
+            px = q->ex[i] + a * dx / dd;
+            py = q->ey[i] + a * dy / dd;
+            for (k = -1; k <= 1; k += 2) {
+                const float sign = (float)k;
+                avoid_try(q, px - sign * h * dy / dd, py + sign * h * dx / dd);
+            }
+        }
+    }
+}
+
+/* runtime.avoidance.nearest_feasible: the same candidates in the same order (the wish; the projection onto each
+ * line, then onto each circle; every two lines, line and circle, two circles), the nearest feasible one into
+ * q->out. Returns 0 when none is feasible. */
+static int avoid_nearest(avoid_qp_t *q, int nd)
+{
+    int i;
+    q->nd = nd;
+    q->best = INFINITY;
+    q->found = 0;
+    if (avoid_feasible(q, q->wx, q->wy)) {
+        q->out[0] = q->wx;
+        q->out[1] = q->wy;
+        return 1;
+    }
+    for (i = 0; i < q->m; ++i) {
+        const float t = -q->lim[i] - (q->wx * q->nx[i] + q->wy * q->ny[i]);
+        avoid_try(q, q->wx + t * q->nx[i], q->wy + t * q->ny[i]);
+    }
+    for (i = 0; i < nd; ++i) {
+        const float dx = q->wx - q->ex[i], dy = q->wy - q->ey[i];
+        const float dn = sqrtf(dx * dx + dy * dy);
+        if (dn > 0.0f) avoid_try(q, q->ex[i] + q->er[i] * dx / dn, q->ey[i] + q->er[i] * dy / dn);
+    }
+    avoid_try_line_pairs(q);
+    avoid_try_circle_pairs(q);
+    return q->found;
+}
+
+/* The half-planes of runtime.avoidance.avoid_rows, in its order: valid teammates (half the budget each), walls
+ * +x -x +y -y, used obstacle slots (radius > 0). */
+static void avoid_constraints(const float obs[SWARM_POLICY_OBS_DIM], avoid_qp_t *q)
+{
+    const float x = obs[SWARM_AVOID_SELF_POS], y = obs[SWARM_AVOID_SELF_POS + 1];
+    int k, m = 0;
+    for (k = 0; k < SWARM_AVOID_N_MATES; ++k) {
+        const float *t = obs + SWARM_AVOID_MATES + SWARM_AVOID_MATE_COLS * k;
+        const float d = sqrtf(t[0] * t[0] + t[1] * t[1]);
+        if (t[SWARM_AVOID_MATE_COLS - 1] > 0.5f && d > 1e-9f) {
+            q->nx[m] = -t[0] / d;
+            q->ny[m] = -t[1] / d;
+            q->lim[m] = 0.5f * avoid_limit(d - SWARM_AVOID_OWN_RADIUS - SWARM_AVOID_MATE_RADIUS,
+                                           SWARM_AVOID_MATE_MARGIN);
+            ++m;
+        }
+    }
+    for (k = 0; k < 4; ++k, ++m) {
+        const float s = (k % 2 == 0) ? 1.0f : -1.0f;
+        const float p = k < 2 ? x : y;
+        q->nx[m] = k < 2 ? -s : 0.0f;
+        q->ny[m] = k < 2 ? 0.0f : -s;
+        q->lim[m] = avoid_limit(SWARM_AVOID_HALF_WIDTH - SWARM_AVOID_OWN_RADIUS - s * p, SWARM_AVOID_OBS_MARGIN);
+    }
+    for (k = 0; k < SWARM_AVOID_N_OBSTACLES; ++k) {
+        const float *o = obs + SWARM_AVOID_OBSTACLES + SWARM_AVOID_OBSTACLE_COLS * k;
+        const float d = sqrtf(o[0] * o[0] + o[1] * o[1]);
+        if (o[2] > 0.0f && d > 1e-9f) {  /* radius 0: an empty slot */
+            q->nx[m] = -o[0] / d;
+            q->ny[m] = -o[1] / d;
+            q->lim[m] = avoid_limit(d - o[2] - SWARM_AVOID_OWN_RADIUS, SWARM_AVOID_OBS_MARGIN);
+            ++m;
+        }
+    }
+    q->m = m;
+}
 #endif
 
-/* runtime.avoidance.avoid_rows for one row: the same constraints in the same order (teammates, walls +x -x
- * +y -y, obstacles), the same cyclic projection and the same final speed limit, in float. The action is
- * written back only when the layer changed the velocity, so a safe action stays bit for bit what the policy
- * returned (as in Python, whose float64 round trip act * v / v rounds back to the float32 action). */
+/* runtime.avoidance.avoid_rows for one row, in float. The action is written back only when the layer changed
+ * the velocity, so a safe, reachable action stays bit for bit what the policy returned (as in Python, whose
+ * float64 round trip act * v / v rounds back to the float32 action). */
 void swarm_avoid(const float obs[SWARM_POLICY_OBS_DIM], float act[SWARM_POLICY_ACT_DIM])
 {
 #if SWARM_AVOID_ENABLED
-    float nx[SWARM_AVOID_N_CON], ny[SWARM_AVOID_N_CON], lim[SWARM_AVOID_N_CON];
-    uint8_t use[SWARM_AVOID_N_CON];
-    float x, y, vx, vy, speed;
-    int i, k, c = 0, changed = 0;
+    avoid_qp_t q;
+    float wx, wy, speed;
+    int i;
     for (i = 0; i < SWARM_POLICY_OBS_DIM; ++i) {
         if (!finite_bits(obs[i])) return;
     }
     if (!finite_bits(act[0]) || !finite_bits(act[1])) return;
-    x = obs[SWARM_AVOID_SELF_POS];
-    y = obs[SWARM_AVOID_SELF_POS + 1];
-    for (k = 0; k < SWARM_AVOID_N_MATES; ++k, ++c) {  /* teammates: half the budget each */
-        const float *m = obs + SWARM_AVOID_MATES + SWARM_AVOID_MATE_COLS * k;
-        const float d = sqrtf(m[0] * m[0] + m[1] * m[1]);
-        use[c] = m[SWARM_AVOID_MATE_COLS - 1] > 0.5f && d > 1e-9f;
-        if (use[c]) {
-            nx[c] = -m[0] / d;
-            ny[c] = -m[1] / d;
-            lim[c] = 0.5f * avoid_limit(d - SWARM_AVOID_OWN_RADIUS - SWARM_AVOID_MATE_RADIUS,
-                                        SWARM_AVOID_MATE_MARGIN);
-        }
+    avoid_constraints(obs, &q);
+    wx = q.wx = act[0] * SWARM_AVOID_MAX_SPEED;
+    wy = q.wy = act[1] * SWARM_AVOID_MAX_SPEED;
+    speed = sqrtf(q.wx * q.wx + q.wy * q.wy);
+    if (speed > SWARM_AVOID_MAX_SPEED) {  /* the world flies at most max_speed: the wish as it would take it */
+        q.wx = q.wx * SWARM_AVOID_MAX_SPEED / speed;
+        q.wy = q.wy * SWARM_AVOID_MAX_SPEED / speed;
     }
-    for (k = 0; k < 4; ++k, ++c) {  /* walls: +x, -x, +y, -y */
-        const float s = (k % 2 == 0) ? 1.0f : -1.0f;
-        const float p = k < 2 ? x : y;
-        nx[c] = k < 2 ? -s : 0.0f;
-        ny[c] = k < 2 ? 0.0f : -s;
-        lim[c] = avoid_limit(SWARM_AVOID_HALF_WIDTH - SWARM_AVOID_OWN_RADIUS - s * p, SWARM_AVOID_OBS_MARGIN);
-        use[c] = 1;
+    q.ex[0] = 0.0f;
+    q.ey[0] = 0.0f;
+    q.er[0] = SWARM_AVOID_MAX_SPEED;
+    q.ex[1] = obs[SWARM_AVOID_SELF_VEL];
+    q.ey[1] = obs[SWARM_AVOID_SELF_VEL + 1];
+    q.er[1] = SWARM_AVOID_MAX_ACCEL * SWARM_AVOID_DT * (1.0f - SWARM_AVOID_REACH_SHRINK);
+    if (!avoid_nearest(&q, 2) && !avoid_nearest(&q, 1)) {  /* none safe and reachable: drop reachability */
+        q.out[0] = q.out[1] = 0.0f;  /* unreachable in exact arithmetic: zero is always safe */
     }
-    for (k = 0; k < SWARM_AVOID_N_OBSTACLES; ++k, ++c) {
-        const float *o = obs + SWARM_AVOID_OBSTACLES + SWARM_AVOID_OBSTACLE_COLS * k;
-        const float d = sqrtf(o[0] * o[0] + o[1] * o[1]);
-        use[c] = o[2] > 0.0f && d > 1e-9f;  /* radius 0: an empty slot */
-        if (use[c]) {
-            nx[c] = -o[0] / d;
-            ny[c] = -o[1] / d;
-            lim[c] = avoid_limit(d - o[2] - SWARM_AVOID_OWN_RADIUS, SWARM_AVOID_OBS_MARGIN);
-        }
-    }
-    vx = act[0] * SWARM_AVOID_MAX_SPEED;
-    vy = act[1] * SWARM_AVOID_MAX_SPEED;
-    for (i = 0; i < SWARM_AVOID_ROUNDS; ++i) {
-        for (k = 0; k < SWARM_AVOID_N_CON; ++k) {
-            float short_by;
-            if (!use[k]) continue;
-            short_by = -lim[k] - (vx * nx[k] + vy * ny[k]);  /* > 0: approaching faster than allowed */
-            if (short_by > 0.0f) {
-                vx += short_by * nx[k];
-                vy += short_by * ny[k];
-                changed = 1;
-            }
-        }
-    }
-    speed = sqrtf(vx * vx + vy * vy);
-    if (speed > SWARM_AVOID_MAX_SPEED) {
-        const float scale = SWARM_AVOID_MAX_SPEED / speed;
-        vx *= scale;
-        vy *= scale;
-        changed = 1;
-    }
-    if (changed) {
-        act[0] = vx / SWARM_AVOID_MAX_SPEED;
-        act[1] = vy / SWARM_AVOID_MAX_SPEED;
+    if (q.out[0] != wx || q.out[1] != wy) {
+        act[0] = q.out[0] / SWARM_AVOID_MAX_SPEED;
+        act[1] = q.out[1] / SWARM_AVOID_MAX_SPEED;
     }
 #else
     (void)obs;
@@ -363,12 +482,12 @@ void swarm_avoid(const float obs[SWARM_POLICY_OBS_DIM], float act[SWARM_POLICY_A
 
 void swarm_action_to_velocity(const float act[SWARM_POLICY_ACT_DIM], float x, float y, float v[2])
 {
-    const float lim = SWARM_SPEC_ARENA_HALF_WIDTH - SWARM_WALL_MARGIN;
     float a0 = act[0], a1 = act[1], n2;
-    /* NaN (a broken policy) becomes a stop, as in runtime.world.World.sanitize_actions */
-    if (!(a0 == a0) || !(a1 == a1)) a0 = a1 = 0.0f;
+    /* non-finite (a broken policy) becomes a stop, clipped to [-1, 1]: runtime.world.World.sanitize_actions */
+    if (!finite_bits(a0) || !finite_bits(a1)) a0 = a1 = 0.0f;
     a0 = a0 > 1.0f ? 1.0f : (a0 < -1.0f ? -1.0f : a0);
     a1 = a1 > 1.0f ? 1.0f : (a1 < -1.0f ? -1.0f : a1);
+    /* runtime.world.action_to_velocity */
     v[0] = a0 * SWARM_SPEC_MAX_SPEED;
     v[1] = a1 * SWARM_SPEC_MAX_SPEED;
     n2 = v[0] * v[0] + v[1] * v[1];
@@ -377,8 +496,19 @@ void swarm_action_to_velocity(const float act[SWARM_POLICY_ACT_DIM], float x, fl
         v[0] *= k;
         v[1] *= k;
     }
-    if ((x >= lim && v[0] > 0.0f) || (x <= -lim && v[0] < 0.0f)) v[0] = 0.0f;
-    if ((y >= lim && v[1] > 0.0f) || (y <= -lim && v[1] < 0.0f)) v[1] = 0.0f;
+#if SWARM_AVOID_ENABLED
+    /* The layer (swarm_avoid) already holds the walls with its braking barrier, as in the Python runtime:
+     * no second wall rule, so the setpoint is the runtime's command. */
+    (void)x;
+    (void)y;
+#else
+    {   /* Layer off: the Python runtime's commands reach a drone through the ground station's geofence
+         * (groundstation.safety); this app's setpoints do not, so it keeps its own stop at the walls. */
+        const float lim = SWARM_SPEC_ARENA_HALF_WIDTH - SWARM_WALL_MARGIN;
+        if ((x >= lim && v[0] > 0.0f) || (x <= -lim && v[0] < 0.0f)) v[0] = 0.0f;
+        if ((y >= lim && v[1] > 0.0f) || (y <= -lim && v[1] < 0.0f)) v[1] = 0.0f;
+    }
+#endif
 }
 
 int swarm_deadman_alive(swarm_deadman_t *d, uint16_t beat, uint32_t now_ms)

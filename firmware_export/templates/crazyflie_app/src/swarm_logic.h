@@ -16,7 +16,8 @@
 #define SWARM_CONTROL_PERIOD_MS ((uint32_t)(SWARM_SPEC_CONTROL_PERIOD_S * 1000.0f + 0.5f))
 #define SWARM_PEER_TIMEOUT_MS 1000u   /* a teammate or threat not heard for this long is dropped */
 #define SWARM_DEADMAN_MS 500u         /* no ground-station heartbeat for this long stops the policy */
-#define SWARM_WALL_MARGIN 0.15f       /* [m] no velocity towards a wall closer than this */
+#define SWARM_WALL_MARGIN 0.15f       /* [m] layer off only: no velocity towards a wall closer than this
+                                        * (see swarm_action_to_velocity) */
 /* The radio message (SWARM_MSG_*, swarm_msg_t, swarm_msg_encode/decode) is generated into policy.h from
  * runtime/radio_msg.py, the definition the Python runtime uses too. */
 
@@ -62,12 +63,18 @@ int swarm_msg_receive(swarm_world_t *w, const uint8_t *buf, uint8_t size, uint32
 void swarm_build_observation(const swarm_world_t *w, uint32_t now_ms, float obs[SWARM_POLICY_OBS_DIM]);
 
 /* The spec's avoidance layer on the policy's action, in place (runtime.avoidance.avoid_rows for one row, in
- * float): the speed towards every obstacle, wall and teammate of obs limited so that the drone can stop
- * before them. Leaves act as it is when SWARM_AVOID_ENABLED is 0, when obs holds a non-finite value, or when act
- * does (swarm_action_to_velocity turns that into a stop). */
+ * float): the velocity nearest the action's among those whose speed towards every obstacle, wall and teammate
+ * of obs lets the drone stop before them, within the max speed and reachable from the own velocity in one
+ * control period (if none is both safe and reachable: the nearest safe one within the max speed). Leaves act
+ * as it is when SWARM_AVOID_ENABLED is 0, when obs holds a non-finite value, or when act does
+ * (swarm_action_to_velocity turns that into a stop). */
 void swarm_avoid(const float obs[SWARM_POLICY_OBS_DIM], float act[SWARM_POLICY_ACT_DIM]);
 
-/* Action in [-1, 1]^2 to a velocity [m/s] with the world's norm limit, and no motion into a nearby wall. */
+/* Action to velocity [m/s] as the Python runtime does it (runtime.world.World.sanitize_actions and
+ * action_to_velocity: a non-finite action is a stop, each component clipped to [-1, 1], times max speed, the norm
+ * limited to it). With the avoidance layer off, also no motion towards a wall within SWARM_WALL_MARGIN of it:
+ * the Python runtime's commands pass the ground station's geofence, this app's setpoints do not. With the
+ * layer on, the layer is the wall rule, so the velocity is exactly the runtime's. */
 void swarm_action_to_velocity(const float act[SWARM_POLICY_ACT_DIM], float x, float y, float v[2]);
 
 /* 1 while the heartbeat counter changed within SWARM_DEADMAN_MS, 0 before the first change and after a gap. */
