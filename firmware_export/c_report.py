@@ -114,13 +114,75 @@ def object_report(obj: Path, model_path: str | Path, n_obs: int = 20, seed: int 
             f"{m4_emu.micros(run.total_cycles):.1f} us at 168 MHz")
 
 
+@dataclass(frozen=True)
+class ParityRow:
+    """One actor's host C against onnxruntime on the parity observations (max over the two action components)."""
+
+    agent: str
+    max_abs_diff: float
+    random_max: float
+    """Over the uniformly drawn half."""
+    recorded_max: float
+    """Over the half recorded from the simulator."""
+    p99: float
+    """99th percentile over the observations."""
+
+
+def parity_rows(models: str | Path, quant: str = "int8w", n_obs: int = 10_000, seed: int = 0,
+                calib_obs: int | None = None) -> list[ParityRow]:
+    """Every actor of a models folder exported with ``quant`` (default settings: GPTQ rounding on the default
+    calibration observations, tables in RAM) and compared on ``n_obs`` parity observations (``seed``)."""
+    from firmware_export.c_export import CALIB_OBS, export_c
+    from runtime.policy import read_manifest
+
+    manifest = read_manifest(models)
+    obs_by_role: dict = {}
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="swarm_parity_") as tmp:
+        for entry in manifest.agents:
+            work = Path(tmp) / entry.id
+            ex = export_c(entry.file, work, quant=quant, calib_obs=calib_obs or CALIB_OBS, check_budget=False)
+            role = ex.model.role
+            if role not in obs_by_role:
+                obs_by_role[role] = parity_observations(ex.model.spec, role, n_obs, seed)
+            obs = obs_by_role[role]
+            d = np.abs(host_policy(ex, work).act_batch(obs) - onnx_actions(entry.file, obs)).max(axis=1)
+            half = n_obs - n_obs // 2  # the random half comes first (parity_observations)
+            rows.append(ParityRow(entry.id, float(d.max()), float(d[:half].max()), float(d[half:].max()),
+                                  float(np.percentile(d, 99))))
+    return rows
+
+
+def parity_table(folders: list[str | Path], quant: str = "int8w", n_obs: int = 10_000, seed: int = 0) -> str:
+    """A Markdown table: per actor, for each models folder, max |C - onnxruntime| (random / recorded half), p99."""
+    cols = [parity_rows(f, quant, n_obs, seed) for f in folders]
+    head = "| actor | " + " | ".join(f"{Path(f).name} {quant}: max (random / recorded), p99" for f in folders) + " |"
+    lines = [head, "|---|" + "---|" * len(folders)]
+    for k, row in enumerate(cols[0]):
+        cells = [f"{c[k].max_abs_diff:.4f} ({c[k].random_max:.4f} / {c[k].recorded_max:.4f}), {c[k].p99:.4f}"
+                 for c in cols]
+        lines.append(f"| {row.agent} | " + " | ".join(cells) + " |")
+    worst = ", ".join(f"{Path(f).name} {max(r.max_abs_diff for r in c):.4f}" for f, c in zip(folders, cols))
+    return "\n".join(lines + ["", f"Worst: {worst}."])
+
+
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    p = argparse.ArgumentParser(description="emulate a policy object built inside the Crazyflie firmware")
-    p.add_argument("--object", required=True, type=Path, help="APP/src/policy.o of a firmware build of the app")
-    p.add_argument("--model", required=True, type=Path, help="the ONNX actor it was exported from")
+    p = argparse.ArgumentParser(description="emulate a policy object built inside the Crazyflie firmware, or "
+                                            "tabulate the C export's parity over every actor of models folders")
+    p.add_argument("--object", type=Path, help="APP/src/policy.o of a firmware build of the app")
+    p.add_argument("--model", type=Path, help="the ONNX actor it was exported from")
+    p.add_argument("--models", type=Path, nargs="+", metavar="DIR",
+                   help="instead: every actor of these models folders, exported with --quant, against onnxruntime")
+    p.add_argument("--quant", default="int8w", choices=("float", "int8w"), help="with --models (default int8w)")
+    p.add_argument("--obs", type=int, default=10_000, help="with --models: parity observations (default 10,000)")
     args = p.parse_args(argv)
+    if args.models:
+        print(parity_table(args.models, args.quant, args.obs))
+        return 0
+    if args.object is None or args.model is None:
+        p.error("give --object and --model, or --models DIR [DIR ...]")
     print(object_report(args.object, args.model))
     return 0
 
