@@ -121,13 +121,20 @@ def _add_land(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run_land)
 
 
-def _run_land(args: argparse.Namespace) -> int:
-    from groundstation.fleet import land_fleet
+def _over_fleet(args: argparse.Namespace, what):
+    """``what(fleet)`` over the fleet file's drones; None after printing a fleet error (exit status 2)."""
     fleet, _, _ = _load_fleet(args.fleet)
     try:
-        out = land_fleet(fleet)
+        return what(fleet)
     except _fleet_errors() as exc:
-        print(f"swarm-gs land: error: {exc}", file=sys.stderr)
+        print(f"swarm-gs {args.command}: error: {exc}", file=sys.stderr)
+        return None
+
+
+def _run_land(args: argparse.Namespace) -> int:
+    from groundstation.fleet import land_fleet
+    out = _over_fleet(args, land_fleet)
+    if out is None:
         return 2
     for d, s in out.items():
         print(f"{d}: {s}")
@@ -142,11 +149,8 @@ def _add_status(subparsers: argparse._SubParsersAction) -> None:
 
 def _run_status(args: argparse.Namespace) -> int:
     from groundstation.fleet import fleet_status
-    fleet, _, _ = _load_fleet(args.fleet)
-    try:
-        rows = fleet_status(fleet)
-    except _fleet_errors() as exc:
-        print(f"swarm-gs status: error: {exc}", file=sys.stderr)
+    rows = _over_fleet(args, fleet_status)
+    if rows is None:
         return 2
     for r in rows:
         pos = "-" if r["position"] is None else "(" + ", ".join(f"{c:+.2f}" for c in r["position"]) + ")"

@@ -60,9 +60,8 @@ def two_rounds(agents):
         a.prepare()
 
 
-def test_observation_equals_the_training_encoder_full_observability(full):
-    manifest, policies = full
-    spec = manifest.spec
+def _seventh_step(spec):
+    """Training's observations after 7 random steps of env seed 3, and a board holding that state."""
     env = PursuitEnv(spec, n_envs=1, seed=3)
     obs = env.reset()
     rng = np.random.default_rng(0)
@@ -71,6 +70,13 @@ def test_observation_equals_the_training_encoder_full_observability(full):
     s = env.state
     board = WorldBoard(spec)
     board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], float(env.time_s()[0]), 0)
+    return obs, board
+
+
+def test_observation_equals_the_training_encoder_full_observability(full):
+    manifest, policies = full
+    spec = manifest.spec
+    obs, board = _seventh_step(spec)
     agents = make_agents(manifest, policies, board, comms=EXACT)
     two_rounds(agents)
     for i, a in enumerate(agents):
@@ -86,14 +92,7 @@ def test_over_the_real_packet_every_agent_hears_its_team_and_sees_within_the_qua
     from runtime.radio_msg import Scales
     manifest, policies = full
     spec = manifest.spec
-    env = PursuitEnv(spec, n_envs=1, seed=3)
-    obs = env.reset()
-    rng = np.random.default_rng(0)
-    for _ in range(7):
-        obs, *_ = env.step(rng.uniform(-1, 1, (1, spec.n_agents, 2)))
-    s = env.state
-    board = WorldBoard(spec)
-    board.publish(s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], float(env.time_s()[0]), 0)
+    obs, board = _seventh_step(spec)
     assert not CommConfig().exact_values
     agents = make_agents(manifest, policies, board)
     two_rounds(agents)
