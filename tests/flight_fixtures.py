@@ -71,9 +71,22 @@ def small_spec() -> SwarmSpec:
 def quick_flight(**overrides):
     """Flight settings for short test flights (low, quick takeoff and landing)."""
     from groundstation.flight import FlightConfig
-    base = dict(height=0.5, takeoff_duration=1.0, takeoff_stagger=0.05, land_speed=0.5)
+    base = dict(QUICK_FLIGHT)
     base.update(overrides)
     return FlightConfig(**base)
+
+
+QUICK_FLIGHT = dict(height=0.5, takeoff_duration=1.0, takeoff_stagger=0.05, land_speed=0.5)
+"""``quick_flight``'s settings: what a test flight needs of takeoff and landing, not a demo's pace."""
+
+
+def quick_flight_toml(path, **extra) -> "Path":
+    """A [flight] TOML with ``quick_flight``'s settings (and ``extra``), for ``swarm-gs demo --flight-config``."""
+    from pathlib import Path
+    path = Path(path)
+    body = {**QUICK_FLIGHT, **extra}
+    path.write_text("[flight]\n" + "".join(f"{k} = {v!r}\n" for k, v in body.items()))
+    return path
 
 
 def open_sim_links(uris: list[str], period_ms: int = 20) -> list:

@@ -9,7 +9,7 @@ import pytest
 
 pytest.importorskip("cflib")
 
-from flight_fixtures import write_models  # noqa: E402
+from flight_fixtures import quick_flight_toml, write_models  # noqa: E402
 from groundstation import cli  # noqa: E402
 from groundstation.demo import RESULT_KEYS  # noqa: E402
 
@@ -24,7 +24,8 @@ def test_short_demo_flies_loses_a_link_lands_and_reports(tmp_path):
     out = tmp_path / "out"
     r = _demo("--duration", "3", "--models", str(models), "--json", str(out / "demo.json"),
               "--log", str(out / "flight.jsonl"), "--plot", str(out / "demo.png"), "--seed", "7",
-              "--kill-link", "cf4@0.5", "--engine", "compiled")
+              "--kill-link", "cf4@0.5", "--engine", "compiled",
+              "--flight-config", str(quick_flight_toml(tmp_path / "flight.toml")))  # what is tested is not the pace
     assert r.returncode == 0, r.stderr[-3000:]
     res = json.loads((out / "demo.json").read_text())
     assert res["engine"] == "compiled"
@@ -114,7 +115,8 @@ def test_a_cold_start_on_a_busy_machine_delays_the_mission_and_faults_no_drone(t
     busy = _busy_machine(2)
     try:
         r = subprocess.run([sys.executable, "-m", "groundstation.cli", "demo", "--duration", "2",
-                            "--models", str(models), "--json", str(tmp_path / "demo.json"), "--seed", "3"],
+                            "--models", str(models), "--json", str(tmp_path / "demo.json"), "--seed", "3",
+                            "--flight-config", str(quick_flight_toml(tmp_path / "flight.toml"))],
                            capture_output=True, text=True, timeout=300, env=env)
     finally:
         for p in busy:

@@ -33,12 +33,11 @@ from groundstation.sim.swarm import SimSwarm, free_base_port  # noqa: E402
 def tolerant_flight(folder) -> "Path":
     """A [flight] TOML whose failsafes wait longer (link loss after 1 s of silence, a stale position after 0.5 s):
     these tests check the view, not the failsafes, and a very loaded machine can pause the simulators' process
-    for a few hundred ms."""
+    for a few hundred ms; takeoff and landing at ``quick_flight``'s pace."""
     from pathlib import Path
-    path = Path(folder) / "tolerant_flight.toml"
-    path.write_text("[flight]\nlink_loss_timeout = 1.0\nposition_stale_after = 0.5\nposition_hold_time = 1.0\n"
-                    "command_timeout = 1.0\n")
-    return path
+    from flight_fixtures import quick_flight_toml
+    return quick_flight_toml(Path(folder) / "tolerant_flight.toml", link_loss_timeout=1.0, position_stale_after=0.5,
+                             position_hold_time=1.0, command_timeout=1.0)
 
 
 def get_state(view: LiveView) -> dict:
