@@ -170,3 +170,24 @@ def test_a_short_role_critic_run_with_the_layer_and_cloning_trains_and_resumes(t
     again = Trainer(longer, tmp_path / "run", resume=True)
     assert again.env_step == 200 and isinstance(again.agent, RoleCriticMADDPG)
     assert again.run(progress=False).env_steps == 250
+
+
+def test_a_loaded_learner_keeps_its_configs_learning_rates():
+    cfg = _cfg()
+    saved = make_learner(cfg.spec, cfg.train).state_dict()
+    tuned = make_learner(cfg.spec, dataclasses.replace(cfg.train, actor_lr=3e-4, critic_lr=2e-4))
+    tuned.load_state_dict(saved)  # a fine-tune (--init-from) under new rates
+    assert {g["lr"] for g in tuned.actor_opt.param_groups} == {3e-4}
+    assert {g["lr"] for g in tuned.critic_opt.param_groups} == {2e-4}
+
+
+def test_an_actor_snapshot_is_evaluated_like_a_run(tmp_path):
+    from training.learned_eval import load_learned
+    cfg = _cfg(steps=40, warmup_steps=10, batch_size=32, checkpoint_every=20, snapshot_actors=True)
+    Trainer(cfg, tmp_path / "run").run(progress=False)
+    snaps = sorted((tmp_path / "run" / "snapshots").glob("actors_*.pt"))
+    assert [p.name for p in snaps] == ["actors_000020.pt", "actors_000040.pt"]
+    _, policy, source = load_learned(run=snaps[0])
+    assert source == str(snaps[0])
+    obs = np.zeros((2, cfg.spec.n_agents, cfg.spec.max_obs_dim))
+    assert policy.act(obs).shape == (2, cfg.spec.n_agents, 2)

@@ -153,6 +153,10 @@ class TrainConfig:
     """Env steps between two rows of metrics.csv and TensorBoard scalars."""
     checkpoint_every: int = 2_000
     """Env steps between two full training-state checkpoints (also written on Ctrl-C and at the end)."""
+    snapshot_actors: bool = False
+    """Also keep the actors of every checkpoint as ``snapshots/actors_<env step>.pt`` (``actors.pt`` holds only the
+    newest), so that a run's course can be evaluated afterwards (``swarm-train evaluate --run RUN --actors
+    snapshots/actors_006000.pt``)."""
     checkpoint_buffer: bool = True
     """Also save the replay buffer with each checkpoint, so that --resume continues exactly."""
     threads: int = 2

@@ -36,16 +36,16 @@ def load_learned(run: str | Path | None = None, models: str | Path | None = None
     if (run is None) == (models is None):
         raise LearnedModelError("give exactly one of --run RUN and --models DIR")
     if run is not None:
-        run = Path(run)
+        run, actors = _run_and_actors(Path(run))
         cfg_path = run / "config.toml"
         if not cfg_path.is_file():
             raise LearnedModelError(f"{run} is not a training run (no config.toml): train with "
                                     f"`swarm-train train --config CONFIG --out {run}`")
         cfg = ExperimentConfig.from_toml(cfg_path)
-        spec, agents, _ = load_actors(run)
+        spec, agents, _ = load_actors(actors)
         if spec.hash != cfg.spec.hash:
-            raise LearnedModelError(f"{run}/actors.pt has spec {spec.hash}, its config.toml {cfg.spec.hash}")
-        return cfg, ActorsPolicy([a for _, _, a in agents], spec.max_obs_dim, spec), str(run / "actors.pt")
+            raise LearnedModelError(f"{actors} has spec {spec.hash}, its run's config.toml {cfg.spec.hash}")
+        return cfg, ActorsPolicy([a for _, _, a in agents], spec.max_obs_dim, spec), str(actors)
     if not (Path(models) / "manifest.json").is_file():
         raise LearnedModelError(f"{models} is not a models folder (no manifest.json): export a run with "
                                 f"`swarm-export onnx --run RUN --out {models}`")
@@ -60,10 +60,24 @@ def load_learned(run: str | Path | None = None, models: str | Path | None = None
     return cfg, pol, str(Path(models) / "manifest.json")
 
 
+def _run_and_actors(path: Path) -> tuple[Path, Path]:
+    """(run folder, actors file) of ``--run PATH``: a run folder (its ``actors.pt``) or one of its actor files
+    (``runs/NAME/snapshots/actors_006000.pt``, ``runs/NAME/actors_imitation.pt``: the run is the nearest folder
+    above it with a ``config.toml``)."""
+    if not path.is_file():
+        return path, path / "actors.pt"
+    for parent in path.parents:
+        if (parent / "config.toml").is_file():
+            return parent, path
+    raise LearnedModelError(f"{path}: no folder above it holds a config.toml; give a run folder or an actors file "
+                            f"inside one")
+
+
 def load_source(path: str | Path) -> tuple[ExperimentConfig, Policy, str]:
-    """``load_learned`` of a run folder (has ``config.toml``) or a models folder (has ``manifest.json``)."""
+    """``load_learned`` of a run folder (has ``config.toml``) or one of its actor files, or of a models folder
+    (has ``manifest.json``)."""
     p = Path(path)
-    if (p / "config.toml").is_file():
+    if (p / "config.toml").is_file() or p.is_file():
         return load_learned(run=p)
     if (p / "manifest.json").is_file():
         return load_learned(models=p)
@@ -156,8 +170,9 @@ EVADER_HELP = (
 
 def add_learned_arguments(p: Any) -> None:
     p.add_argument("--run", metavar="RUN", action="append",
-                   help="evaluate the trained actors of a run folder (runs/NAME); give it several times or as a "
-                        "quoted glob ('runs/role_based_s*') to report the mean and min-max over runs")
+                   help="evaluate the trained actors of a run folder (runs/NAME), or one of its actor files "
+                        "(runs/NAME/actors_imitation.pt, runs/NAME/snapshots/actors_006000.pt); give it several "
+                        "times or as a quoted glob ('runs/role_based_s*') to report the mean and min-max over runs")
     p.add_argument("--models", metavar="DIR", action="append",
                    help="evaluate an exported ONNX models folder (models/NAME); several as with --run")
     p.add_argument("--evader", metavar="SPEC", default=None, help=EVADER_HELP)

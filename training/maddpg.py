@@ -94,10 +94,15 @@ class ReplayBuffer:
         self.size = min(self.size + b, self.capacity)
 
     def sample(self, batch: int, generator: torch.Generator) -> Batch:
+        return Batch(*self.sample_fields(batch, generator, self.FIELDS))
+
+    def sample_fields(self, batch: int, generator: torch.Generator, fields: Sequence[str]) -> list[torch.Tensor]:
+        """``batch`` random transitions' ``fields`` only (a cloning step needs the observations and the teacher's
+        actions, not the rest: the gather from a large buffer is most of a big sample's cost)."""
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         idx = torch.randint(0, self.size, (batch,), generator=generator, device=self.device)
-        return Batch(*(getattr(self, name)[idx] for name in self.FIELDS))
+        return [getattr(self, name)[idx] for name in fields]
 
     def state_dict(self) -> dict[str, Any]:
         n = self.size
@@ -481,6 +486,10 @@ class MADDPG:
         # state dict taken from a live learner is not shared with it
         self.actor_opt.load_state_dict(copy.deepcopy(sd["actor_opt"]))
         self.critic_opt.load_state_dict(copy.deepcopy(sd["critic_opt"]))
+        # the config's learning rates, not the saved ones: a fine-tune (--init-from) may set new ones
+        for opt, lr in ((self.actor_opt, self.cfg.actor_lr), (self.critic_opt, self.cfg.critic_lr)):
+            for group in opt.param_groups:
+                group["lr"] = lr
         self.updates = int(sd["updates"])
         for name in ("reg_gen", "target_gen"):  # absent in checkpoints written before these streams
             if name in sd:

@@ -274,9 +274,13 @@ class Trainer:
         if self.tc.checkpoint_buffer:
             _save_torch(self.buffer.state_dict(), self.ckpt_dir / "buffer.pt")
         _save_torch(st, self.ckpt_dir / "state.pt")
-        save_actors(self.out / "actors.pt", self.spec, self.agent.to_actors(), self.cfg.to_dict(),
-                    {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
-                     "run": str(self.out)})
+        meta = {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
+                "run": str(self.out)}
+        save_actors(self.out / "actors.pt", self.spec, self.agent.to_actors(), self.cfg.to_dict(), meta)
+        if self.tc.snapshot_actors:
+            (self.out / "snapshots").mkdir(exist_ok=True)
+            save_actors(self.out / "snapshots" / f"actors_{self.env_step:06d}.pt", self.spec, self.agent.to_actors(),
+                        self.cfg.to_dict(), meta)
         log.info("checkpoint at env step %d", self.env_step)
 
     # -- the loop -----------------------------------------------------------------------------------
@@ -408,8 +412,8 @@ class Trainer:
                         win.n_updates += 1
                     if imitation and tc.imitation_updates and len(self.buffer) >= tc.imitation_batch:
                         for _ in range(tc.imitation_updates):
-                            b = self.buffer.sample(tc.imitation_batch, self.sample_gen)
-                            win.clone_mse += self.agent.clone_step(b.obs, b.teach)
+                            o, t = self.buffer.sample_fields(tc.imitation_batch, self.sample_gen, ("obs", "teach"))
+                            win.clone_mse += self.agent.clone_step(o, t)
                             win.n_clone += 1
                 if bar is not None:
                     bar.update(1)
