@@ -33,7 +33,6 @@ import json
 import logging
 import math
 import random
-import tempfile
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -179,9 +178,10 @@ def _resolve_drone(token: str, ids: list[str]) -> str:
 
 
 def _open_links(uris: list[str], period_ms: int, link_loss_timeout: float) -> list:
-    cache = tempfile.mkdtemp(prefix="swarm-gs-toc-")
+    from groundstation.fleet import TOC_CACHE  # shared with swarm-gs fly: the next demo skips the TOC download
     with concurrent.futures.ThreadPoolExecutor(len(uris)) as ex:
-        futures = [ex.submit(open_link, u, period_ms=period_ms, rw_cache=cache, link_loss_timeout=link_loss_timeout)
+        futures = [ex.submit(open_link, u, period_ms=period_ms, rw_cache=str(TOC_CACHE),
+                             link_loss_timeout=link_loss_timeout)
                    for u in uris]
         links, errors = [], []
         for f in futures:

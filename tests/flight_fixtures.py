@@ -92,12 +92,11 @@ def quick_flight_toml(path, **extra) -> "Path":
 def open_sim_links(uris: list[str], period_ms: int = 20) -> list:
     """CflibLinks to simulated drones, opened in parallel."""
     import concurrent.futures
-    import tempfile
 
+    from groundstation.fleet import TOC_CACHE  # the TOC downloaded once (by CRC), not once per test
     from groundstation.link import open_link
-    cache = tempfile.mkdtemp(prefix="swarm-gs-test-toc-")
     with concurrent.futures.ThreadPoolExecutor(len(uris)) as ex:
-        return list(ex.map(lambda u: open_link(u, period_ms=period_ms, rw_cache=cache), uris))
+        return list(ex.map(lambda u: open_link(u, period_ms=period_ms, rw_cache=str(TOC_CACHE)), uris))
 
 
 def wait_until(predicate, timeout: float, period: float = 0.01) -> bool:
