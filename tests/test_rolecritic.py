@@ -191,3 +191,33 @@ def test_an_actor_snapshot_is_evaluated_like_a_run(tmp_path):
     assert source == str(snaps[0])
     obs = np.zeros((2, cfg.spec.n_agents, cfg.spec.max_obs_dim))
     assert policy.act(obs).shape == (2, cfg.spec.n_agents, 2)
+
+
+def test_es_needs_shared_actors_and_sane_settings():
+    with pytest.raises(SpecError, match=r"train\.es_iterations: evolution strategies fly one actor per role"):
+        _cfg(es_iterations=3)
+    for key, value in (("es_population", 0), ("es_sigma", 0.0), ("es_learned_share", 1.5), ("es_lr", -1.0)):
+        with pytest.raises(SpecError, match=rf"train\.{key}"):
+            _cfg(share_params=True, es_iterations=3, **{key: value})
+
+
+def test_an_es_phase_after_the_steps_writes_its_actors_and_resumes(tmp_path):
+    spec = {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 1}, "avoidance": {"enabled": True}}
+    cfg = _cfg(spec, steps=40, warmup_steps=10, batch_size=32, share_params=True, es_iterations=2,
+               es_population=2, es_episodes=2, es_checkpoint_every=1, snapshot_actors=True)
+    first = Trainer(cfg, tmp_path / "run")
+    first.run(progress=False)
+    rows = (tmp_path / "run" / "es.csv").read_text().splitlines()
+    assert len(rows) == 3 and rows[0].startswith("iteration,")
+    assert (tmp_path / "run" / "snapshots" / "actors_es0002.pt").is_file()
+    from training.checkpoint import load_actors
+    _, agents, doc = load_actors(tmp_path / "run")
+    assert doc["meta"]["es_iterations"] == 2
+    # the team moved, the evader is the learner's
+    _, before, _ = load_actors(tmp_path / "run" / "snapshots" / "actors_000040.pt")
+    moved = [not torch.equal(a.net[0].weight, b.net[0].weight) for (_, _, a), (_, _, b) in zip(agents, before)]
+    assert moved == [True, True, True, False]
+    longer = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, es_iterations=3))
+    again = Trainer(longer, tmp_path / "run", resume=True)
+    again.run(progress=False)
+    assert len((tmp_path / "run" / "es.csv").read_text().splitlines()) == 4

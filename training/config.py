@@ -210,6 +210,31 @@ class TrainConfig:
     than the critics need."""
     imitation_batch: int = 1024
     """Transitions per extra behaviour-cloning step (``imitation_updates``)."""
+    es_iterations: int = 0
+    """After the MADDPG steps: iterations of evolution strategies on the pursuer team's actors, scored on the
+    evaluation's metrics against the training pool and the frozen co-trained evaders (``training.es``); 0: none.
+    Needs ``share_params`` (one actor per role)."""
+    es_population: int = 16
+    """ES directions per iteration; each is flown as ``+sigma`` and ``-sigma`` (antithetic pairs)."""
+    es_episodes: int = 16
+    """Episodes every member of an ES population flies (the same ones for all: common random numbers)."""
+    es_sigma: float = 0.003
+    """Std of the ES perturbations of every actor weight [1]."""
+    es_lr: float = 0.001
+    """Adam step size of the ES ascent [1, per weight]."""
+    es_tracking_weight: float = 1.0
+    """ES fitness: + weight x tracking rate [1]."""
+    es_distance_weight: float = 1.0
+    """ES fitness: - weight x mean minimum pursuer-evader distance [1/m]."""
+    es_coverage_weight: float = 0.1
+    """ES fitness: + weight x episode coverage [1]."""
+    es_contact_weight: float = 0.1
+    """ES fitness: - weight x the team's own contacts per episode (teammates and obstacles) [1]."""
+    es_learned_share: float = 0.3
+    """Share of ES episodes whose evaders are the run's co-trained actors (frozen); the rest meet the training
+    pool (``training.evader_suite.TrainingPool``). The held-out suite and the scripted evaders are never met."""
+    es_checkpoint_every: int = 5
+    """ES iterations between two saves of the ES state and the actors."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "n_envs", "batch_size", "buffer_size", "update_every", "log_every",
@@ -263,6 +288,22 @@ class TrainConfig:
         for name in ("imitation_decay_steps", "imitation_updates"):
             if getattr(self, name) < 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.es_iterations < 0:
+            raise SpecError(f"train.es_iterations: must be >= 0, got {self.es_iterations!r}")
+        for name in ("es_population", "es_episodes", "es_checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise SpecError(f"train.{name}: must be >= 1, got {getattr(self, name)!r}")
+        for name in ("es_sigma", "es_lr"):
+            if not getattr(self, name) > 0:
+                raise SpecError(f"train.{name}: must be > 0, got {getattr(self, name)!r}")
+        for name in ("es_tracking_weight", "es_distance_weight", "es_coverage_weight", "es_contact_weight"):
+            if not getattr(self, name) >= 0:
+                raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if not 0.0 <= self.es_learned_share <= 1.0:
+            raise SpecError(f"train.es_learned_share: must be in [0, 1], got {self.es_learned_share!r}")
+        if self.es_iterations and not self.share_params:
+            raise SpecError("train.es_iterations: evolution strategies fly one actor per role: set "
+                            "train.share_params = true (or train.es_iterations = 0)")
         if self.imitation_batch < 1:
             raise SpecError(f"train.imitation_batch: must be >= 1, got {self.imitation_batch!r}")
         if self.imitation_updates and self.imitation_batch > self.buffer_size:

@@ -141,12 +141,22 @@ class PursuitEnv:
 
     def _reset_ids(self, ids: np.ndarray) -> None:
         self.world.reset(ids)
+        self.restart(ids)
+
+    def restart(self, ids: np.ndarray) -> None:
+        """Start new episodes in ``ids`` from the world's current state: target knowledge and metrics anew, the
+        world untouched (for states set from outside, e.g. copied between envs); ``observe()`` gives their
+        observations."""
         s = self.world.state
         self.knowledge[ids] = new_knowledge(self.spec, ids.size)
         sub = update_knowledge(self.spec, self.knowledge[ids], s.pos[ids], s.vel[ids], 0.0)
         self.knowledge[ids] = sub
         if self.metrics is not None:
             self.metrics.begin_episodes(ids, s.obstacle_pos[ids], s.obstacle_radius[ids])
+
+    def observe(self) -> np.ndarray:
+        """The observations of every env now ``[B, N, D]``."""
+        return self._observe()
 
     def _observe(self, dist: np.ndarray | None = None) -> np.ndarray:
         s = self.world.state

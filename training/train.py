@@ -237,9 +237,9 @@ class Trainer:
     def _init_from(self, src: Path) -> None:
         """Start this (new) run from ``src``'s last checkpoint: a fine-tune under this run's config."""
         self._restore(src / "checkpoints", "start from")
-        if self.env_step >= self.tc.steps:
+        if self.env_step >= self.tc.steps and not self.tc.es_iterations:
             raise RunError(f"{src} is already at env step {self.env_step}: set train.steps (or --steps) above it "
-                           f"to fine-tune")
+                           f"to fine-tune, or train.es_iterations for evolution strategies alone")
         run = json.loads((self.out / "run.json").read_text())
         run["init_from"] = {"run": str(src), "at_step": self.env_step}
         write_text_atomic(self.out / "run.json", json.dumps(run, indent=2) + "\n")
@@ -439,14 +439,78 @@ class Trainer:
                 bar.close()
         self.save_checkpoint()
         writer.close()
+        es_iterations = 0
+        if not interrupted and tc.es_iterations and self.env_step >= tc.steps:
+            es_iterations, interrupted = self._run_es(progress)
         session = self._session_time()
         result = TrainResult(self.out, self.env_step, (self.env_step - start_step) * tc.n_envs,
                              self.agent.updates - start_updates, session, interrupted)
-        summary = {**result.to_dict(), "total_env_steps": self.env_step, "total_frames": self.env_step * tc.n_envs,
+        summary = {**result.to_dict(), "es_iterations": es_iterations,
+                   "total_env_steps": self.env_step, "total_frames": self.env_step * tc.n_envs,
                    "total_updates": self.agent.updates, "total_train_time_s": round(self.elapsed + session, 3),
                    "torch_threads": torch.get_num_threads(), "device": tc.device, "finished_utc": _utc_now()}
         write_text_atomic(self.out / "summary.json", json.dumps(summary, indent=2) + "\n")
         return result
+
+    # -- evolution strategies after the MADDPG steps (train.es_iterations) ---------------------------
+    def _run_es(self, progress: bool) -> tuple[int, bool]:
+        """The ES phase (``training.es``), resumable from ``checkpoints/es.pt``: every ``es_checkpoint_every``
+        iterations (and on Ctrl-C) the ES state and ``actors.pt`` (team from ES, evaders from the learner) are
+        saved; ``es.csv`` has a row per iteration. Returns (iterations done now, interrupted)."""
+        from training.es import ES_COLUMNS, TeamES, es_row
+        tc = self.tc
+        actors = self.agent.to_actors()
+        es = TeamES(self.spec, self.cfg.rewards, actors, tc, seed=tc.seed + 13)
+        path = self.ckpt_dir / "es.pt"
+        if path.is_file():
+            es.load_state_dict(torch.load(path, map_location="cpu", weights_only=False))
+        start = es.iteration
+        csv_path = self.out / "es.csv"
+        if es.iteration == 0 or not csv_path.is_file():
+            with csv_path.open("w", newline="") as fh:
+                csv.writer(fh).writerow(ES_COLUMNS)
+        bar = None
+        if progress and es.iteration < tc.es_iterations:
+            from tqdm import tqdm
+            bar = tqdm(total=tc.es_iterations, initial=es.iteration, unit="it", desc="ES", dynamic_ncols=True)
+
+        def save() -> None:
+            _save_torch(es.state_dict(), path)
+            team = es.team_actors()
+            final = [team.get(i, a) for i, a in enumerate(actors)]
+            meta = {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
+                    "es_iterations": es.iteration, "run": str(self.out)}
+            save_actors(self.out / "actors.pt", self.spec, final, self.cfg.to_dict(), meta)
+            if tc.snapshot_actors:
+                (self.out / "snapshots").mkdir(exist_ok=True)
+                save_actors(self.out / "snapshots" / f"actors_es{es.iteration:04d}.pt", self.spec, final,
+                            self.cfg.to_dict(), meta)
+
+        restore = _install_stop_handlers()
+        t0 = time.perf_counter()
+        interrupted = False
+        try:
+            while es.iteration < tc.es_iterations:
+                row = es.step()
+                row["time_s"] = round(time.perf_counter() - t0, 2)
+                with csv_path.open("a", newline="") as fh:
+                    csv.writer(fh).writerow(es_row(row))
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix_str(f"F={row['fitness']:.3f} dmin={row['min_dist']:.3f} "
+                                        f"trk={row['tracking']:.3f}", refresh=False)
+                if es.iteration % tc.es_checkpoint_every == 0 or es.iteration == tc.es_iterations:
+                    save()
+        except KeyboardInterrupt:
+            interrupted = True
+            log.warning("interrupted at ES iteration %d: saving (continue with --resume)", es.iteration)
+            save()
+        finally:
+            restore()
+            if bar is not None:
+                bar.close()
+        log.info("ES: %d iterations in %.1f s", es.iteration - start, time.perf_counter() - t0)
+        return es.iteration - start, interrupted
 
     def _record(self, win: _Window, rew: np.ndarray, done: np.ndarray, info: dict) -> None:
         win.n += 1
