@@ -4,7 +4,8 @@ The fence itself (its configuration, geometry, ``check_position``, ``in_safe_set
 ``fence``; this module holds the velocity rule and the gate.
 
 The pure functions (``clamp_path``, ``limit_velocity``, and ``fence``'s ``clamp_position`` and
-``check_position``) hold the geometry; ``FenceGuard`` is the per-drone hold-then-land state machine;
+``check_position``) hold the geometry, compiled in ``fence_geometry`` (about 10 us per setpoint instead of
+about 250 us: ``tests/benchmarks/test_bench_fence.py``); ``FenceGuard`` is the per-drone hold-then-land state machine;
 ``Geofence`` wraps both and is the one object that setpoints go through.
 
 Velocity rule: a velocity ``v`` along unit direction ``u`` from position ``p`` is allowed when the straight
@@ -35,8 +36,9 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from groundstation.fence import (FAR, PARALLEL, TOL, FenceConfig, FenceStatus, KeepOut, as_point,
-                                 check_position, clamp_position, geometry, in_safe_set)
+from groundstation import fence_geometry as fg
+from groundstation.fence import (FAR, TOL, FenceConfig, FenceStatus, KeepOut, as_point, check_position,
+                                 clamp_position, geometry, in_safe_set, point3)
 
 __all__ = ["FenceConfig", "FenceGuard", "FenceStats", "FenceStatus", "FilteredSetpoint", "Geofence", "GuardState",
            "KeepOut", "check_position", "clamp_path", "clamp_position", "free_distance", "in_safe_set",
@@ -44,50 +46,22 @@ __all__ = ["FenceConfig", "FenceGuard", "FenceStats", "FenceStatus", "FilteredSe
 
 log = logging.getLogger(__name__)
 
-_BRAKE_SLACK = 1e-6
+_BRAKE_SLACK = fg.BRAKE_SLACK
 """Distance [m] kept back from a boundary by the velocity limit, against rounding."""
 
 
 # --------------------------------------------------------------------------------------------------
-# the velocity rule
+# the velocity rule (compiled: ``fence_geometry``)
 
 def free_distance(fence: FenceConfig, p: np.ndarray, u: np.ndarray) -> float:
     """Distance [m] from ``p`` (in the safe set) along unit vector ``u`` to the safe set's boundary."""
-    g = geometry(fence)
-    t = math.inf
-    if u[2] > PARALLEL:
-        t = min(t, (g.z_hi - p[2]) / u[2])
-    elif u[2] < -PARALLEL:
-        t = min(t, (g.z_lo - p[2]) / u[2])
-    uxy = u[:2]
-    for n, c in zip(g.inner_normals, g.inner_offsets):
-        nu = float(n @ uxy)
-        if nu > PARALLEL:  # nearly parallel planes are met far beyond the others, which bound the ray
-            t = min(t, (c - float(n @ p[:2])) / nu)
-    qa = float(uxy @ uxy)
-    if qa > 0:
-        for c, r in zip(g.centres, g.grown):
-            w = p[:2] - c
-            b = float(w @ uxy)
-            cc = float(w @ w) - r * r
-            if cc <= 0:
-                if b < 0:  # on or inside the grown circle and heading further in
-                    t = 0.0
-                continue
-            disc = b * b - qa * cc
-            if b < 0 and disc > 0:
-                t = min(t, (-b - math.sqrt(disc)) / qa)
-    return max(t, 0.0)
+    return fg.free_distance(geometry(fence).packed, float(p[0]), float(p[1]), float(p[2]), float(u[0]),
+                            float(u[1]), float(u[2]))
 
 
 def max_safe_speed(distance: float, dt: float, max_decel: float, coast_time: float = 0.0) -> float:
     """Largest speed s [m/s] with ``s dt + s^2 / (2 max_decel) <= distance`` and ``s coast_time <= distance``."""
-    if distance <= 0:
-        return 0.0
-    if math.isinf(distance):
-        return math.inf
-    brake = max_decel * (-dt + math.sqrt(dt * dt + 2.0 * distance / max_decel))
-    return min(brake, distance / coast_time) if coast_time > 0 else brake
+    return fg.max_safe_speed(float(distance), float(dt), float(max_decel), float(coast_time))
 
 
 def limit_velocity(fence: FenceConfig, position: Sequence[float] | np.ndarray | None,
@@ -99,32 +73,14 @@ def limit_velocity(fence: FenceConfig, position: Sequence[float] | np.ndarray | 
     The direction is kept and only the speed is reduced (to at most ``fence.max_speed``). From a position
     outside the safe set only the part of ``v`` that heads for the nearest safe point is kept, slow enough to
     stop there. Missing or non-finite ``position``, ``v`` or ``dt``, or ``dt < 0``, give zero (hover)."""
-    g = geometry(fence)
-    zero = np.zeros(3)
-    p = as_point(position)
-    w = as_point(v)
+    out = np.zeros(3)
+    p = point3(position)
+    w = point3(v)
     if p is None or w is None or not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt >= 0):
-        return zero
-    scale = float(np.max(np.abs(w)))
-    if scale <= 0:
-        return zero
-    u = w / scale
-    u /= float(np.linalg.norm(u))  # scaled first so that huge components cannot overflow
-    speed = min(scale * float(np.linalg.norm(w / scale)), fence.max_speed)
-    if in_safe_set(fence, p):
-        d = free_distance(fence, p, u) - _BRAKE_SLACK
-        s = min(speed, max_safe_speed(d, dt, fence.max_decel, fence.coast_time))
-        return u * s if s > 0 else zero
-    p[:2] = np.clip(p[:2], g.lo, g.hi)
-    p[2] = min(max(p[2], -FAR), FAR)
-    q = clamp_position(fence, p)
-    to_q = q - p
-    dist = float(np.linalg.norm(to_q))
-    if dist <= TOL:
-        return zero
-    uq = to_q / dist
-    s = min(speed * float(u @ uq), max_safe_speed(dist, dt, fence.max_decel, fence.coast_time))
-    return uq * s if s > 0 else zero
+        return out
+    fg.limit_velocity(geometry(fence).packed, p, w, float(dt), fence.max_speed, fence.max_decel,
+                      fence.coast_time, FAR, out)
+    return out
 
 
 def clamp_path(fence: FenceConfig, start: Sequence[float] | np.ndarray | None,
@@ -239,6 +195,11 @@ class Geofence:
         self._stats: dict[str, FenceStats] = {}
         self._last_position: dict[str, np.ndarray] = {}
         self._lock = threading.Lock()
+        # numba compiles the kernels (or loads them from its cache) on their first call: here, not in the
+        # first setpoint of a flight
+        limit_velocity(fence, fence.home, np.ones(3), 0.1)
+        limit_velocity(fence, fence.home + (1e3, 0.0, 0.0), np.ones(3), 0.1)
+        check_position(fence, fence.home)
 
     def guard(self, drone_id: str) -> FenceGuard:
         with self._lock:
@@ -265,7 +226,7 @@ class Geofence:
         before = guard.state
         if status is None:
             status = check_position(self.fence, measured_pos)  # type: ignore[arg-type]
-        if as_point(measured_pos) is None:  # type: ignore[arg-type]
+        if point3(measured_pos) is None:
             st.non_finite += 1
         state = guard.update(status, self.clock())
         if state is GuardState.HOLD and before is GuardState.OK:
@@ -284,7 +245,7 @@ class Geofence:
         they queued behind each other (measured in the 12-drone demo: setpoint p99 in the ground station
         59-65 ms with it inside, 7-16 ms outside, same machine and load)."""
         status = check_position(self.fence, measured_pos)  # type: ignore[arg-type]
-        req = as_point(v)
+        req = point3(v)
         with self._lock:
             state, st = self._observe(drone_id, measured_pos, status)
             if req is None:
@@ -292,7 +253,7 @@ class Geofence:
         if state is not GuardState.OK:
             return FilteredSetpoint(state, np.zeros(3), True)
         out = limit_velocity(self.fence, measured_pos, v, dt)
-        changed = req is None or not bool((np.abs(out - req) <= 1e-12).all())
+        changed = req is None or max(abs(a - b) for a, b in zip(out.tolist(), req.tolist())) > 1e-12
         if changed:
             with self._lock:
                 st.clamped += 1

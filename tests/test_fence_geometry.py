@@ -1,0 +1,169 @@
+"""The compiled geofence geometry (``groundstation.fence_geometry``) against the numpy code it replaced
+(``fence_reference``: bit for bit) and against shapely (an independent model of the safe set), on random
+fences and points."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import event, given, settings
+from hypothesis import strategies as st
+
+import fence_reference as ref
+from fence_strategies import fences, point, sane_point
+from groundstation import fence as gsfence
+from groundstation import safety
+from groundstation.safety import FenceConfig, FenceStatus, KeepOut
+
+EQUAL = settings(max_examples=300, deadline=None)
+unit = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda u: np.linalg.norm(u) > 1e-3)
+near = st.floats(-1e-9, 1e-9)  # nudges onto and just off a boundary
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> None:
+    np.testing.assert_array_equal(a, b)  # to the bit: the same operations in the same order
+
+
+def _agree(fence: FenceConfig, p: object, got: object, want: object) -> None:
+    """``got`` is ``want`` to the bit, unless ``p`` is a tie (``_tie``), where only clamped points must agree to
+    rounding."""
+    if isinstance(got, np.ndarray) and isinstance(want, np.ndarray) and np.array_equal(got, want) or \
+            not isinstance(got, np.ndarray) and got == want:
+        return
+    assert _tie(fence, p), (p, got, want)
+    event("differs, within rounding of a threshold")
+
+
+def _tie(fence: FenceConfig, p: object) -> bool:
+    """Whether ``p`` lies within rounding (1e-12 m) of a threshold that decides where it is: a polygon's edge
+    or a circle, exactly or at the ``TOL`` slack. There the reference's ``normals @ xy`` (a BLAS product that
+    may fuse a multiply-add) and the kernel's ``nx * x + ny * y`` can round to different sides (found by
+    hypothesis at a corner of a polygon fence: OUTSIDE vs MARGIN), and every answer that follows may differ."""
+    a = gsfence.as_point(p)
+    if a is None:
+        return False
+    g = gsfence.geometry(fence)
+    xy = np.clip(a[:2], g.lo, g.hi)
+    gaps = [g.normals @ xy - g.offsets, g.inner_normals @ xy - g.inner_offsets,
+            np.hypot(*(xy - g.centres).T) - g.radii, np.hypot(*(xy - g.centres).T) - g.grown]
+    gaps = np.concatenate([np.ravel(x) for x in gaps])
+    return bool(np.any(np.abs(np.concatenate([gaps, gaps + gsfence.TOL, gaps - gsfence.TOL])) <= 1e-12))
+
+
+def _on_boundaries(fence: FenceConfig, draw_t: float, nudge: tuple[float, float, float]) -> np.ndarray:
+    """A point on the safe polygon's edge, a grown keep-out circle or the fence polygon, nudged by ``nudge``."""
+    g = gsfence.geometry(fence)
+    pieces = [("inner", i) for i in range(len(g.inner))] + [("outer", i) for i in range(len(g.outer))] + \
+        [("circle", i) for i in range(len(g.radii))]
+    kind, i = pieces[int(draw_t * 1e6) % len(pieces)]
+    t = (draw_t * 1e3) % 1.0
+    if kind == "circle":
+        r = g.grown[i] if int(draw_t * 1e4) % 2 else g.radii[i]
+        xy = g.centres[i] + r * np.array([math.cos(2 * math.pi * t), math.sin(2 * math.pi * t)])
+    else:
+        poly = g.inner if kind == "inner" else g.outer
+        xy = poly[i] + t * (poly[(i + 1) % len(poly)] - poly[i])
+    z = (g.z_lo, g.z_hi, fence.z_min, fence.z_max)[int(draw_t * 1e5) % 4]
+    return np.array([xy[0], xy[1], z]) + np.array(nudge)
+
+
+@EQUAL
+@given(fence=fences(), p=st.one_of(point, sane_point), fb=st.one_of(st.none(), point))
+def test_position_checks_and_clamps_equal_the_reference(fence: FenceConfig, p: tuple, fb: tuple | None) -> None:
+    _agree(fence, p, gsfence.check_position(fence, p), ref.check_position(fence, p))
+    for tol in (0.0, 1e-9, 1e-6):
+        _agree(fence, p, gsfence.in_safe_set(fence, p, tol), ref.in_safe_set(fence, p, tol))
+    fb_used = p if gsfence.as_point(p) is not None else fb
+    _agree(fence, fb_used, gsfence.clamp_position(fence, p, fb), ref.clamp_position(fence, p, fb))
+
+
+@EQUAL
+@given(fence=fences(), t=st.floats(0, 1), nudge=st.tuples(near, near, near), u=unit)
+def test_points_on_the_boundaries_are_classified_and_clamped_as_the_reference(fence: FenceConfig, t: float,
+                                                                               nudge: tuple, u: tuple) -> None:
+    p = _on_boundaries(fence, t, nudge)
+    if _tie(fence, p):
+        event("within rounding of a threshold")
+    _agree(fence, p, gsfence.check_position(fence, p), ref.check_position(fence, p.copy()))
+    for tol in (0.0, 1e-9):
+        _agree(fence, p, gsfence.in_safe_set(fence, p, tol), ref.in_safe_set(fence, p.copy(), tol))
+    got, want = gsfence.clamp_position(fence, p), ref.clamp_position(fence, p.copy())
+    _agree(fence, p, got, want)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    w = np.array(u) * 2.0
+    _agree(fence, p, safety.limit_velocity(fence, p, w, 0.1), ref.limit_velocity(fence, p.copy(), w, 0.1))
+
+
+@EQUAL
+@given(fence=fences(), p=st.one_of(point, sane_point), v=st.one_of(point, st.tuples(*[st.floats(-3, 3)] * 3)),
+       dt=st.one_of(st.floats(0.0, 0.5), st.sampled_from([math.nan, -0.1, math.inf, 0.0])))
+def test_velocity_limits_equal_the_reference(fence: FenceConfig, p: tuple, v: tuple, dt: float) -> None:
+    _agree(fence, p, safety.limit_velocity(fence, p, v, dt), ref.limit_velocity(fence, p, v, dt))
+
+
+@EQUAL
+@given(fence=fences(), p=sane_point, u=unit, target=st.one_of(point, sane_point))
+def test_free_distance_and_paths_equal_the_reference(fence: FenceConfig, p: tuple, u: tuple, target: tuple) -> None:
+    s = gsfence.clamp_position(fence, p)
+    uu = np.array(u) / np.linalg.norm(u)
+    assert safety.free_distance(fence, s, uu) == ref.free_distance(fence, s, uu)
+    _agree(fence, p, safety.clamp_path(fence, p, target), ref.clamp_path(fence, p, target))
+    for d, dt, a, c in ((0.3, 0.1, 2.0, 2.0), (math.inf, 0.1, 2.0, 0.0), (-1.0, 0.1, 2.0, 2.0)):
+        assert safety.max_safe_speed(d, dt, a, c) == ref.max_safe_speed(d, dt, a, c)
+
+
+def test_the_setpoint_path_arrays_are_used_as_given_and_never_changed() -> None:
+    """The hot path passes float64 [3] arrays straight to the kernels (no copy); they must stay unchanged (the
+    numpy code clipped a far-out position in place, in the caller's array)."""
+    f = FenceConfig(keep_out=(KeepOut(1.0, 0.0, 0.3),))
+    p, v = np.array([1e9, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    before = p.copy(), v.copy()
+    safety.limit_velocity(f, p, v, 0.1)
+    gsfence.clamp_position(f, p)
+    _same(p, before[0])
+    _same(v, before[1])
+    for bad in (np.array([np.nan, 0.0, 1.0]), np.array([np.inf, -np.inf, 1.0]), np.array([0, 0, 1], dtype=np.int64),
+                np.array([0.0, 0.0, 1.0], dtype=np.float32), np.zeros(4), [0.0, 0.0], "abc", None):
+        _same(safety.limit_velocity(f, bad, v, 0.1), ref.limit_velocity(f, bad, v, 0.1))
+        assert gsfence.check_position(f, bad) is ref.check_position(f, bad)
+
+
+# -- shapely, an independent model of the safe set ----------------------------------------------------------
+
+QUAD = 256  # segments per quarter circle: the polygonal circle lies within r (1 - cos(pi / 512)) < 2e-5 r of it
+
+
+def _shapely_safe(fence: FenceConfig):
+    shapely = pytest.importorskip("shapely")
+    from shapely.geometry import Point, Polygon
+    g = gsfence.geometry(fence)
+    safe = Polygon(g.inner)
+    holes = [Point(c).buffer(r, quad_segs=QUAD) for c, r in zip(g.centres, g.grown)]
+    return safe.difference(shapely.unary_union(holes)) if holes else safe, Point
+
+
+@settings(max_examples=150, deadline=None)
+@given(fence=fences(), p=sane_point)
+def test_the_clamp_is_shapelys_nearest_safe_point(fence: FenceConfig, p: tuple) -> None:
+    region, Point = _shapely_safe(fence)
+    q = gsfence.clamp_position(fence, p)
+    slack = 2e-5 * max([1.0, *gsfence.geometry(fence).grown])
+    assert region.distance(Point(q[:2])) <= 1e-9 + slack  # in the set
+    want = region.distance(Point(p[:2]))  # to shapely's (polygonal, slightly larger) set
+    got = math.hypot(q[0] - p[0], q[1] - p[1])
+    assert want - 1e-9 <= got <= want + slack, (got, want)
+
+
+@settings(max_examples=150, deadline=None)
+@given(fence=fences(), p=sane_point)
+def test_the_safe_set_is_shapelys(fence: FenceConfig, p: tuple) -> None:
+    region, Point = _shapely_safe(fence)
+    d = region.boundary.distance(Point(p[:2]))
+    g = gsfence.geometry(fence)
+    if d < 1e-4 * max([1.0, *g.grown]) or abs(p[2] - g.z_lo) < 1e-9 or abs(p[2] - g.z_hi) < 1e-9:
+        return  # too near a boundary for the polygonal circles to say
+    want = region.contains(Point(p[:2])) and g.z_lo <= p[2] <= g.z_hi
+    assert gsfence.in_safe_set(fence, p, 0.0) is want
+    if want:
+        assert gsfence.check_position(fence, p) is FenceStatus.INSIDE
