@@ -28,10 +28,20 @@ def make_run(run_dir: Path, spec: SwarmSpec, seed: int = 0) -> Path:
 @functools.lru_cache(maxsize=4)
 def exported(partial: bool = False) -> tuple[Path, Path, dict]:
     """(run folder, models folder, manifest) for the default spec (``partial``: partial observability)."""
+    import torch
+
     from firmware_export.onnx_export import export_run
     spec = SwarmSpec.from_dict({"sensing": {"observability": "partial"}}) if partial else SwarmSpec()
     name = "partial" if partial else "full"
-    run = make_run(_ROOT / "runs" / name, spec)
-    models = _ROOT / "models" / name
-    manifest = export_run(run, models)
+    # one torch thread, as tests/conftest.py gives every test that has torch imported already: the first call
+    # imports torch itself, inside a fixture. With two threads on 2 busy cores the export's 3,600 small
+    # forward passes took 48 s instead of 11 (load 3-4).
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        run = make_run(_ROOT / "runs" / name, spec)
+        models = _ROOT / "models" / name
+        manifest = export_run(run, models)
+    finally:
+        torch.set_num_threads(threads)
     return run, models, manifest
