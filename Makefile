@@ -23,8 +23,13 @@ demo: $(STAMP)
 # subprocess and re-rewrote every test module's asserts: collection alone took 24 s instead of 10)
 PYTEST := PYTHONDONTWRITEBYTECODE= $(PY) -m pytest
 
+# two pytest-xdist workers: most of the suite waits on subprocesses, sockets and simulated flights, so two
+# workers: 848 s against 962 s serial with four trainings beside them (2026-12-02); PYTEST_WORKERS=0: serial
+PYTEST_WORKERS ?= 2
+XDIST = $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist worksteal)
+
 test: $(STAMP)
-	$(PYTEST) -q
+	$(PYTEST) -q $(XDIST)
 
 # the suite three times in a row while stress-ng keeps both cores busy (Debian: apt-get install stress-ng)
 LOAD_RUNS ?= 3
@@ -32,7 +37,7 @@ test-under-load: $(STAMP)
 	@command -v stress-ng >/dev/null || { echo "test-under-load: stress-ng is not installed: apt-get install stress-ng"; exit 2; }
 	@stress-ng --cpu 2 --quiet & pid=$$!; trap "kill $$pid 2>/dev/null" EXIT INT TERM; \
 	for i in $$(seq $(LOAD_RUNS)); do echo "== run $$i of $(LOAD_RUNS) under stress-ng --cpu 2"; \
-		$(PYTEST) -q $(PYTEST_ARGS) || exit 1; done
+		$(PYTEST) -q $(XDIST) $(PYTEST_ARGS) || exit 1; done
 
 bench: $(STAMP)
 	$(PY) -m pytest tests/benchmarks -m "slow or not slow" --benchmark-enable --benchmark-columns=min,median,mean,ops,rounds

@@ -79,6 +79,7 @@ def test_tiny_sweep_on_local_processes(tmp_path):
     assert "done: n_pursuers=1 seed=0: 40 env steps" in r.stdout  # the CLI prints what run_local echoes
 
 
+@pytest.mark.slow  # starts a local Ray instance: 93 s of the suite; run by pytest -m slow
 def test_tiny_sweep_on_a_local_ray_instance(tmp_path):
     pytest.importorskip("ray")
     p = _sweep_file(tmp_path, n_pursuers="[2]")
