@@ -13,12 +13,42 @@ from pathlib import Path
 
 from firmware_export.cgen import DEFAULT_WEIGHTS_IN, QUANTS, TANHS, WEIGHTS_IN
 from firmware_export.mlp_graph import CExportError
-from runtime.cliutil import ArgumentParser, EXIT_USAGE, in_file, nonneg_int, out_dir, positive_int
+from runtime.cliutil import ArgumentParser, EXIT_USAGE, in_file, int_in, out_dir, seed
 from runtime.spec import SpecError
+
+MAX_OBS = 1_000_000
+"""Observations a parity check or a calibration takes at most: they are drawn at once (45 float64 each, about
+360 MB at the bound); more is a typo."""
+observations = int_in(1, MAX_OBS, "observations")
+
+
+def _check_overrides(args: argparse.Namespace) -> None:
+    """``--spec-toml`` and ``--role`` are for models without that metadata: on an exported actor that has it, a
+    different one would generate C for another spec or role than the weights were trained on, silently."""
+    import json
+
+    from firmware_export.mlp_graph import load_onnx
+    from runtime.spec import Role, SwarmSpec
+    if args.spec_toml is None and args.role is None:
+        return
+    props = {p.key: p.value for p in load_onnx(args.model).metadata_props}
+    if args.spec_toml is not None and "spec_json" in props:
+        given = SwarmSpec.from_toml(args.spec_toml).hash
+        stored = SwarmSpec.from_dict(json.loads(props["spec_json"])).hash
+        if given != stored:
+            raise CExportError(f"--spec-toml {args.spec_toml}: spec {given}, but {args.model} was exported for "
+                               f"spec {stored} (its metadata): leave --spec-toml out, it is for models without "
+                               f"spec metadata")
+    if args.role is not None and "role" in props:
+        if Role.parse(args.role) != Role.parse(props["role"]):
+            raise CExportError(f"--role {args.role}: {args.model} is a {props['role']} actor (its metadata): leave "
+                               f"--role out, it is for models without role metadata")
 
 
 def _cmd_c(args: argparse.Namespace) -> int:
     from firmware_export.c_export import export_c
+
+    _check_overrides(args)
 
     ex = export_c(args.model, args.out, quant=args.quant, tanh=args.tanh, spec_toml=args.spec_toml, role=args.role,
                   weights_in=args.weights_in, int8_rounding=args.int8_rounding, calib_obs=args.calib_obs,
@@ -58,7 +88,7 @@ def add_c(sub: argparse._SubParsersAction) -> None:
                         "leaves free (for a firmware built with less of its own state)")
     p.add_argument("--int8-rounding", choices=("gptq", "nearest"), default="gptq",
                    help="int8w only: gptq (error compensation on calibration observations) or nearest")
-    p.add_argument("--calib-obs", type=positive_int, default=20_000,
+    p.add_argument("--calib-obs", type=observations, default=20_000,
                    help="int8w with gptq: calibration observations (half random in the spec's ranges, half "
                         "recorded from the simulator; other seeds than the --report parity check)")
     p.add_argument("--tanh", choices=TANHS, default="fast",
@@ -71,7 +101,7 @@ def add_c(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--report", action="store_true",
                    help="also check parity against onnxruntime and report Cortex-M4 size and cycles "
                         "(needs a host C compiler, arm-none-eabi-gcc and unicorn)")
-    p.add_argument("--report-obs", type=positive_int, default=10_000, help="observations for the --report parity check")
+    p.add_argument("--report-obs", type=observations, default=10_000, help="observations for the --report parity check")
     p.set_defaults(func=_cmd_c)
 
 
@@ -119,9 +149,9 @@ def add_onnx(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--run", required=True, type=_run_folder,
                    help="training run folder holding actors.pt (runs/NAME)")
     p.add_argument("--out", required=True, type=out_dir, help="models folder to write (models/NAME/)")
-    p.add_argument("--random", type=positive_int, default=10_000, help="random observations for the parity check")
-    p.add_argument("--recorded", type=positive_int, default=10_000, help="recorded observations for the parity check")
-    p.add_argument("--seed", type=nonneg_int, default=0, help="seed of the parity check's observations")
+    p.add_argument("--random", type=observations, default=10_000, help="random observations for the parity check")
+    p.add_argument("--recorded", type=observations, default=10_000, help="recorded observations for the parity check")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the parity check's observations")
     p.set_defaults(func=_cmd_onnx)
 
 

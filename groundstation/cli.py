@@ -21,7 +21,7 @@ from groundstation.cli_common import (UsageError, add_no_separation, add_view, c
 from groundstation.cli_fleet import _add_fly, _add_land, _add_status
 from groundstation.sim.swarm import DEFAULT_BASE_PORT, SimError, SimSwarm
 from runtime.cliutil import (EXIT_USAGE, ArgumentParser, int_in, models_dir, nonneg_int, out_file,
-                             out_picture, port, positive_float)
+                             out_picture, port, positive_float, seed)
 from runtime.spec import ENGINES, SpecError
 
 
@@ -34,7 +34,7 @@ def _add_sim(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--base-port", type=port, default=DEFAULT_BASE_PORT,
                    help=f"UDP port of drone 0 (default {DEFAULT_BASE_PORT}, where cflib scans)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
-    p.add_argument("--seed", type=nonneg_int, default=0, help="seed of the positioning noise (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the positioning noise (default 0)")
     p.add_argument("--spacing", type=positive_float, default=0.5, help="distance between start positions [m]")
     p.add_argument("--duration", type=positive_float, default=None,
                    help="stop after this many seconds (default: run until Ctrl-C)")
@@ -55,7 +55,13 @@ def _run_sim(args: argparse.Namespace) -> int:
         raise UsageError(f"--drones {args.drones} --mavlink {args.mavlink}: no drone to simulate; give at least one, "
                          f"e.g. --drones 3, or --drones 0 --mavlink 1")
     check_port_range("--base-port", args.base_port, args.drones)
-    check_port_range("--mavlink-port", args.mavlink_port, args.mavlink)
+    check_port_range("--mavlink-port", args.mavlink_port, args.mavlink, "--mavlink")
+    if args.drones and args.mavlink and (args.base_port < args.mavlink_port + args.mavlink
+                                         and args.mavlink_port < args.base_port + args.drones):
+        raise UsageError(f"--mavlink-port {args.mavlink_port}: the MAVLink ground station's ports "
+                         f"{args.mavlink_port}..{args.mavlink_port + args.mavlink - 1} overlap the simulated "
+                         f"Crazyflies' {args.base_port}..{args.base_port + args.drones - 1} (--base-port): give ranges "
+                         f"apart, e.g. the defaults")
     try:
         socket.getaddrinfo(args.host, None, type=socket.SOCK_DGRAM)
     except (socket.gaierror, UnicodeError) as exc:
@@ -159,7 +165,7 @@ def _add_demo(subparsers: argparse._SubParsersAction) -> None:
                    help=f"LPS anchors (default {d.anchors})")
     p.add_argument("--flight-config", default=None, metavar="TOML",
                    help="TOML with a [flight] table (and optionally a [separation] table)")
-    p.add_argument("--seed", type=nonneg_int, default=d.seed, help="obstacles, start positions, noise (default 0)")
+    p.add_argument("--seed", type=seed, default=d.seed, help="obstacles, start positions, noise (default 0)")
     p.add_argument("--base-port", type=port, default=None, help="UDP port of drone 0 (default: a free range)")
     add_no_separation(p)
     p.add_argument("--sim-in-process", action="store_true",
@@ -184,6 +190,10 @@ def _check_demo(args: argparse.Namespace) -> None:
         if value == getattr(defaults, name) and not Path(value).exists():
             raise UsageError(f"{option}: the default {value!r} is relative to the repository root and is not in "
                              f"{os.getcwd()}: run swarm-gs there or give {option} PATH")
+    for option, name in (("--spec", "spec"), ("--flight-config", "flight_config")):
+        value = getattr(args, name)
+        if value is not None and not value.strip():  # "" would read as "not given" and fly the defaults
+            raise UsageError(f"{option}: expected a TOML file path, got ''; leave {option} out for the default")
     if not 0.0 <= args.loss < 1.0:
         raise UsageError(f"--loss: expected a probability in [0, 1), got {args.loss:g}")
     if args.kill_link is not None and args.kill_link[1] >= args.duration:
@@ -269,6 +279,9 @@ def _run_replay(args: argparse.Namespace) -> int:
         source = ReplaySource(rows, speed=args.speed, start=args.start)
     except LogError as exc:
         raise UsageError(f"LOG {args.log}: {exc}") from None
+    if args.start >= source.duration > 0:
+        raise UsageError(f"--start {args.start:g}: past the end of LOG {args.log} ({source.duration:.1f} s long); give "
+                         f"a time below {source.duration:.1f}")
     try:
         view = LiveView(args.view).start()
     except ViewError as exc:

@@ -12,8 +12,11 @@ class UsageError(Exception):
     """A bad argument or input file found before any drone flies; the message names the option and the fix."""
 
 
-def check_port_range(option: str, base: int, n: int) -> None:
+def check_port_range(option: str, base: int, n: int, count_option: str = "--drones") -> None:
     """Drone i listens on ``base + i``: the last one must still be a port."""
+    if n > 65535:
+        raise UsageError(f"{count_option} {n}: more drones than UDP ports (one each from {option} {base}); give at "
+                         f"most {65536 - base}")
     if n and base + n - 1 > 65535:
         raise UsageError(f"{option}: {base} + {n} drones passes port 65535; use a base port <= {65536 - n}")
 

@@ -27,6 +27,7 @@ def _load_fleet(path: str, flying: bool = False):
     from runtime.policy import PolicyError, read_manifest
     from runtime.spec import SwarmSpec
     fleet, flight = read_input("--fleet", path, FleetConfig.from_toml)
+    _check_schemes(path, fleet)
     if not flying:
         return fleet, flight, None
     separation = read_input("--fleet", path, load_separation)
@@ -51,6 +52,17 @@ def _load_fleet(path: str, flying: bool = False):
     except SpecError as exc:
         raise UsageError(f"{where}.fence {fleet.fence}: {exc}") from None
     return fleet, flight, separation
+
+
+def _check_schemes(path: str, fleet) -> None:
+    """Every drone's URI names a link the ground station has (open_link would say so only once per drone, after
+    the others' radios were opened)."""
+    from groundstation.link import scheme_of, schemes
+    for k, drone in enumerate(fleet.drones):
+        if scheme_of(drone.uri) not in schemes():
+            raise UsageError(f"--fleet {path}: fleet.drones[{k}].uri: {drone.uri!r} has no known link scheme; write "
+                             f"it as one of {', '.join(s + ':' for s in schemes())}, e.g. radio://0/80/2M/E7E7E7E701, "
+                             f"udp://127.0.0.1:19850 or mavlink:udpin:127.0.0.1:14550")
 
 
 def _add_fly(subparsers: argparse._SubParsersAction) -> None:

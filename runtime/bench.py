@@ -116,9 +116,9 @@ def bench_loop(models: str | Path, seconds: float, rate_hz: float, engine: str) 
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from runtime.spec import SpecError
-    if args.calls < 100:
-        raise SpecError(f"--calls: at least 100 calls per engine for a p99, got {args.calls}")
+    from runtime.cli import check_run_length
+    if args.loop_seconds > 0:
+        check_run_length("--loop-seconds", args.loop_seconds, args.rate, args.models)
     res = bench_inference(args.models, args.agent, args.calls, idle_s=args.idle)
     print(format_inference(res, args.idle), flush=True)
     res["loops"] = []
@@ -138,18 +138,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def add_bench(sub: argparse._SubParsersAction) -> None:
-    from runtime.cliutil import float_in, nonneg_float, nonneg_int, out_file, positive_float
+    from runtime.cli import control_rate
+    from runtime.cliutil import float_in, int_in, models_dir, nonneg_float, nonneg_int, out_file
     # an idle above a minute is a typo (and time.sleep(inf) overflows)
     idle = float_in(0.0, 60.0, low_open=True, unit="seconds")
     p = sub.add_parser("bench", help="time the actors on this machine (every engine, hot and cold, and the loop)",
                        description=__doc__.split("\n\n")[1].replace("\n", " ").replace("``", ""))
-    p.add_argument("--models", required=True, type=Path, help="models folder written by `swarm-export onnx`")
+    p.add_argument("--models", required=True, type=models_dir, help="models folder written by `swarm-export onnx`")
     p.add_argument("--agent", type=nonneg_int, default=0, help="index of the agent whose actor is timed (default 0)")
-    p.add_argument("--calls", type=nonneg_int, default=20000, help="calls per engine (default 20000)")
+    # fewer than 100 give no p99; the times of every call are kept (8 bytes each)
+    p.add_argument("--calls", type=int_in(100, 10_000_000, "calls per engine"), default=20000,
+                   help="calls per engine (default 20000)")
     p.add_argument("--idle", type=idle, default=0.01,
                    help="idle time before each cold call [s] (default 0.01, one period at 100 Hz)")
     p.add_argument("--loop-seconds", type=nonneg_float, default=0.0,
                    help="also run the whole swarm this long per engine (0: skip; 10 is a good measurement)")
-    p.add_argument("--rate", type=positive_float, default=100.0, help="control rate of the loop run [Hz] (default 100)")
+    p.add_argument("--rate", type=control_rate, default=100.0, help="control rate of the loop run [Hz] (default 100)")
     p.add_argument("--json", type=out_file, default=None, help="also write the figures to this JSON file")
     p.set_defaults(func=cmd_bench)

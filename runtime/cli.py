@@ -19,8 +19,8 @@ import sys
 import time
 from pathlib import Path
 
-from runtime.cliutil import (ArgumentParser, float_in, EXIT_USAGE, float_list, json_safe, models_dir,
-                             nonneg_float, nonneg_int, out_file, out_prefix, positive_float, probability,
+from runtime.cliutil import (ArgumentParser, float_in, EXIT_USAGE, float_list, int_in, json_safe, models_dir,
+                             nonneg_float, out_file, out_prefix, positive_float, probability, seed,
                              write_json_atomic, write_text_atomic)
 from runtime.comms import CommConfig
 from runtime.spec import ENGINES, SpecError
@@ -42,11 +42,34 @@ _nonneg = nonneg_float
 _positive = positive_float
 _floats = float_list(nonneg_float, "numbers >= 0", "0,0.2,0.5")
 
+MAX_RATE_HZ = 1000.0
+"""The fastest control rate a run takes: the world and every agent step in Python, which keeps up with a few
+hundred Hz at best; a faster --rate is a typo."""
+control_rate = float_in(0.0, MAX_RATE_HZ, low_open=True, unit="Hz")
+
+MAX_TICKS = 1_000_000
+"""Control ticks per agent a run may last: every tick's timing is recorded (arrays sized before the run)."""
+
+
+def check_run_length(option: str, seconds: float, rate_hz: float | None, models) -> None:
+    """``seconds`` at ``rate_hz`` (None: the models' spec control rate) is at least one control tick and at most
+    ``MAX_TICKS``; else ``SpecError`` naming ``option`` (before any agent starts)."""
+    if rate_hz is None:
+        from runtime.policy import read_manifest
+        rate_hz = 1.0 / read_manifest(models).spec.timing.control_period
+    ticks = seconds * rate_hz
+    if ticks < 1:
+        raise SpecError(f"{option} {seconds:g} s at {rate_hz:g} Hz is less than one control tick: give "
+                        f"{option} >= {1 / rate_hz:g} or a higher --rate")
+    if ticks > MAX_TICKS:
+        raise SpecError(f"{option} {seconds:g} s at {rate_hz:g} Hz is {ticks:.3g} control ticks; a run records "
+                        f"every tick: give {option} <= {MAX_TICKS / rate_hz:g} (at most {MAX_TICKS} ticks)")
+
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", required=True, type=models_dir,
                    help="models folder written by `swarm-export onnx` (manifest.json + one ONNX actor per agent)")
-    p.add_argument("--rate", type=_positive, default=None,
+    p.add_argument("--rate", type=control_rate, default=None,
                    help="agents' control rate [Hz] (default: 1 / spec control period; the world steps at that)")
     p.add_argument("--processes", action="store_true",
                    help="each agent in its own process, messages over UDP on loopback (default: threads)")
@@ -58,7 +81,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--exact-values", action="store_true",
                    help="carry the sender's float64 values beside the 60-byte packet, so that observations are "
                         "bit-identical to training's (default: only the packet, int16 fixed point, as on the drones)")
-    p.add_argument("--seed", type=nonneg_int, default=0, help="world and channel seed")
+    p.add_argument("--seed", type=seed, default=0, help="world and channel seed")
     p.add_argument("--no-stagger", action="store_true", help="all agents tick at the same instant")
     p.add_argument("--no-warm", action="store_true", help="no warm-up inference before the tick")
     p.add_argument("--no-reuse", action="store_true",
@@ -127,6 +150,7 @@ def write_json(path: Path, obj) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from runtime.swarm import run_swarm
+    check_run_length("--duration", args.duration, args.rate, args.models)
     res = run_swarm(args.models, _run_config(args, args.duration, args.loss, args.latency))
     print(format_run(res))
     if args.json is not None:
@@ -156,6 +180,7 @@ DEGRADE_COLUMNS = (("tracking_rate", "tracking", "{:.3f}"), ("mean_min_dist", "m
 
 def _cmd_degrade(args: argparse.Namespace) -> int:
     from runtime.swarm import run_swarm
+    check_run_length("--duration", args.duration, args.rate, args.models)
     rows, repeats = [], []
     t0 = time.time()
     cells = [(loss, latency) for latency in args.latencies for loss in args.losses]
@@ -241,7 +266,7 @@ def add_degrade(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=_positive, default=30.0, help="seconds of real time per cell")
     p.add_argument("--losses", type=float_list(probability, "probabilities in [0, 1]", "0,0.2,0.5"), default=[0.0, 0.2, 0.5], help="comma-separated loss probabilities")
     p.add_argument("--latencies", type=float_list(nonneg_float, "latencies >= 0 [s]", "0,0.05,0.2"), default=[0.0, 0.05, 0.2], help="comma-separated latencies [s]")
-    p.add_argument("--baseline-repeats", type=nonneg_int, default=0,
+    p.add_argument("--baseline-repeats", type=int_in(0, 100), default=0,
                    help="run the first cell this many extra times to show the run-to-run spread")
     p.add_argument("--out", type=out_prefix(".md", ".json"), default=Path("results/runtime_degradation"),
                    help="output path without suffix (writes .md and .json)")

@@ -79,6 +79,31 @@ def int_in(low: int, high: int, unit: str = "") -> Callable[[str], int]:
 positive_int = int_at_least(1)
 nonneg_int = int_at_least(0)
 
+SEED_MAX = 2 ** 32 - 1
+"""The largest seed a command takes: numpy takes any, but torch's generators overflow past 2**63 and legacy
+seeding (``RandomState``) past 2**32 - 1; one bound for every ``--seed`` of the project."""
+
+
+def seed(text: str) -> int:
+    """An argparse type: a seed, a whole number in 0..``SEED_MAX``."""
+    what = f"a seed, a whole number >= 0 and <= {SEED_MAX}"
+    v = _number(text, int, what)
+    if not 0 <= v <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return v
+
+
+def recheck(args: argparse.Namespace, name: str, check: Callable[[str], Any]) -> None:
+    """``check`` (an argparse type of this module) applied again to ``args.<name>`` when it is set: for an option
+    registered elsewhere with a looser type. Raises ``argparse.ArgumentTypeError`` naming ``--<name>``."""
+    value = getattr(args, name, None)
+    if value is None or isinstance(value, bool):
+        return
+    try:
+        check(str(value))
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"--{name.replace('_', '-')}: {exc}") from None
+
 
 def float_in(low: float = -math.inf, high: float = math.inf, *, low_open: bool = False, high_open: bool = False,
              unit: str = "", allow_inf: bool = False) -> Callable[[str], float]:
@@ -148,6 +173,20 @@ def _nearest_existing(path: Path) -> Path:
     return p
 
 
+def _can_create_in(folder: Path) -> bool:
+    """A file can be created in ``folder``: ``os.access`` first, then a real probe file (removed at once), since
+    ``os.access`` says yes to root on a read-only mount or in ``/proc``, where the write would fail after the work."""
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return False
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=folder)
+    except OSError:
+        return False
+    os.close(fd)
+    os.unlink(probe)
+    return True
+
+
 def check_out_file(path: str | Path) -> Path:
     """``path`` if a file can be written there: no ancestor is a file, it is not a folder, and the nearest
     existing folder is writable; otherwise ``argparse.ArgumentTypeError`` naming what is in the way."""
@@ -161,7 +200,7 @@ def check_out_file(path: str | Path) -> Path:
     if p.is_dir():
         raise argparse.ArgumentTypeError(f"cannot write {str(path)!r}: it is a folder; give a file name in it")
     base = _nearest_existing(p.parent)
-    if not os.access(base, os.W_OK | os.X_OK):
+    if not _can_create_in(base):
         raise argparse.ArgumentTypeError(f"cannot write {str(path)!r}: folder {str(base)!r} is not writable; "
                                          f"give a path you can write")
     return p
@@ -181,13 +220,16 @@ def check_out_dir(path: str | Path) -> Path:
         raise argparse.ArgumentTypeError(f"cannot create folder {str(path)!r}: {str(block)!r} is a file; give a "
                                          f"path in a folder")
     base = _nearest_existing(p)
-    if not os.access(base, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"cannot write into {str(path)!r}: {str(base)!r} is not writable")
+    if not _can_create_in(base):
+        raise argparse.ArgumentTypeError(f"cannot write into {str(path)!r}: {str(base)!r} is not writable; give a "
+                                         f"folder you can write")
     return p
 
 
 def check_in_file(path: str | Path) -> Path:
     """``path`` if it is an existing readable file; otherwise ``argparse.ArgumentTypeError``."""
+    if not str(path).strip():  # Path("") is ".", which would read as "a folder"
+        raise argparse.ArgumentTypeError("expected a file path, got ''")
     p = Path(path)
     if not p.exists():
         raise argparse.ArgumentTypeError(f"{str(path)!r} does not exist; check the path")
@@ -201,6 +243,8 @@ def check_in_file(path: str | Path) -> Path:
 def models_dir(text: str) -> Path:
     """An argparse type for a models folder of ``swarm-export onnx``: a file there is an error; a missing folder
     or one without a manifest is left to ``runtime.policy.read_manifest``, whose message says how to export."""
+    if not text.strip():  # Path("") is the working directory
+        raise argparse.ArgumentTypeError("expected a models folder path, got ''")
     p = Path(text)
     if p.exists() and not p.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r} is a file, not a models folder; give the folder that "
@@ -240,6 +284,8 @@ def in_file(text: str) -> Path:
 def out_prefix(*suffixes: str) -> Callable[[str], Path]:
     """An argparse type for an output path without suffix, written as PATH+suffix for each of ``suffixes``."""
     def parse(text: str) -> Path:
+        if not text.strip():
+            raise argparse.ArgumentTypeError("expected an output path without suffix, got ''")
         p = Path(text)
         for s in suffixes:
             check_out_file(p.with_suffix(s))

@@ -44,13 +44,27 @@ def paths(tmp_path, monkeypatch):
     (tmp_path / "fleet_spec.toml").write_text(
         f'[fleet]\nmodels = "{MODELS}"\nspec = "{OTHER_SPEC}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
         '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
+    (tmp_path / "empty.toml").write_text("# nothing but a comment\n")
+    (tmp_path / "fleet_uri.toml").write_text(
+        f'[fleet]\nmodels = "{MODELS}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
+        '[[fleet.drones]]\nid = "cf1"\nuri = "bogus://x"\nteam = "pursuer"\n')
+    (tmp_path / "mini.jsonl").write_text('{"t": 0.0, "drone": "cf0", "state": "flying", "position": [0, 0, 0.5]}\n'
+                                         '{"t": 2.0, "drone": "cf0", "state": "flying", "position": [0.1, 0, 0.5]}\n')
+    (tmp_path / "runcut" / "checkpoints").mkdir(parents=True)  # a run whose training state was cut short
+    (tmp_path / "runcut" / "config.toml").write_text((ROOT / "configs" / "multi_target.toml").read_text())
+    (tmp_path / "runcut" / "checkpoints" / "state.pt").write_bytes(b"PK\x03\x04 cut short")
+    (tmp_path / "runcsv").mkdir()
+    (tmp_path / "runcsv" / "metrics.csv").write_text("env_step\n")
     return {"FILE": str(tmp_path / "afile"), "DIR": str(tmp_path / "adir"), "BAD": str(tmp_path / "bad.toml"),
             "NONE": str(tmp_path / "none"), "TMP": str(tmp_path), "BINTOML": str(tmp_path / "bin.toml"),
             "FENCEKEY": str(tmp_path / "fence_key.toml"), "SEPKEY": str(tmp_path / "sep_key.toml"),
             "FENCESMALL": str(tmp_path / "fence_small.toml"), "FLEETFENCE": str(tmp_path / "fleet_fence.toml"),
             "TRAINKEY": str(tmp_path / "train_key.toml"), "TRAINSEED": str(tmp_path / "train_seed.toml"),
             "FLEETKEY": str(tmp_path / "fleet_key.toml"),
-            "FLEETMODELS": str(tmp_path / "fleet_models.toml"), "FLEETSPEC": str(tmp_path / "fleet_spec.toml")}
+            "FLEETMODELS": str(tmp_path / "fleet_models.toml"), "FLEETSPEC": str(tmp_path / "fleet_spec.toml"),
+            "EMPTY": str(tmp_path / "empty.toml"), "FLEETURI": str(tmp_path / "fleet_uri.toml"),
+            "MINILOG": str(tmp_path / "mini.jsonl"), "RUNCUT": str(tmp_path / "runcut"),
+            "RUNCSV": str(tmp_path / "runcsv")}
 
 
 def _run(module: str, argv: list[str], capsys) -> tuple[int, str]:
@@ -68,7 +82,7 @@ CASES = [
     ("runtime.cli", "degrade --models M --losses 0,,1", ["--losses", "comma-separated"], None),
     ("runtime.cli", "degrade --models M --losses 0,2", ["--losses", "[0, 1]", "'0,2'"], None),
     ("runtime.cli", "degrade --models M --latencies -0.1", ["--latencies", ">= 0"], None),
-    ("runtime.cli", "degrade --models M --baseline-repeats -1", ["--baseline-repeats", "'-1'", ">= 0"], None),
+    ("runtime.cli", "degrade --models M --baseline-repeats -1", ["--baseline-repeats", "'-1'", "0..100"], None),
     ("runtime.cli", "degrade --models M --out FILE/x", ["--out", "is a file"], "FILE/x.md"),
     ("runtime.cli", "bench --models M --idle inf", ["--idle", "'inf'", "finite"], None),
     ("runtime.cli", "bench --models M --idle 0", ["--idle", "(0, 60]"], None),
@@ -89,7 +103,7 @@ CASES = [
     ("training.cli", "evaluate --json FILE/e.json --episodes 1", ["--json", "is a file"], "FILE/e.json"),
     ("training.cli", "evaluate --md FILE/e.md --episodes 1", ["--md", "is a file"], "FILE/e.md"),
     ("training.cli", "evaluate --plot DIR --episodes 1", ["--plot", "is a folder"], None),
-    ("training.cli", "evaluate --episodes 0", ["--episodes", "'0'", ">= 1"], None),
+    ("training.cli", "evaluate --episodes 0", ["--episodes", "'0'", "1..1000000"], None),
     ("training.cli", "evaluate --n-envs x", ["--n-envs", "'x'"], None),
     ("training.cli", "evaluate --config BAD --episodes 1", ["not valid TOML", "BAD"], None),
     ("training.cli", "evaluate --config DIR --episodes 1", ["DIR"], None),
@@ -190,6 +204,69 @@ CASES = [
     ("groundstation.cli", "fly --fleet BAD --log FILE/f.jsonl", ["--log", "is a file"], "FILE/f.jsonl"),
     ("groundstation.cli", "status --fleet DIR", ["--fleet", "is a folder"], None),
     ("groundstation.cli", "land --fleet BAD", ["--fleet", "not valid TOML"], None),
+    # issue 12's second pass: numbers past what the machine can hold or a typo, '' read as "not given", a seed
+    # torch cannot take, a config with nothing in it, damaged checkpoints, overrides of an actor's own metadata
+    ("runtime.cli", "run --models M --rate 1e9", ["--rate", "'1e9'", "(0, 1000]"], None),
+    ("runtime.cli", "run --models M --duration 1e300", ["--duration 1e+300", "control ticks", "1000000"], None),
+    ("runtime.cli", "run --models M --duration 0.5 --rate 0.001", ["--duration 0.5", "less than one control tick"],
+     None),
+    ("runtime.cli", "run --models M --seed 99999999999999999999999", ["--seed", "4294967295"], None),
+    ("runtime.cli", "run --models ''", ["--models", "got ''"], None),
+    ("runtime.cli", "degrade --models M --baseline-repeats 99999999999", ["--baseline-repeats", "0..100"], None),
+    ("runtime.cli", "degrade --models M --out ''", ["--out", "got ''"], None),
+    ("runtime.cli", "degrade --models M --duration 1e300 --out TMP/d", ["--duration", "control ticks"], "TMP/d.md"),
+    ("runtime.cli", "bench --models M --calls 99999999999999", ["--calls", "100..10000000"], None),
+    ("runtime.cli", "bench --models M --loop-seconds 1e300", ["--loop-seconds", "control ticks"], None),
+    ("runtime.cli", "bench --models M --rate 1e12", ["--rate", "(0, 1000]"], None),
+    ("runtime.cli", "bench --models FILE", ["--models", "is a file"], None),
+    ("firmware_export.cli", "c --model A --out TMP/c --calib-obs 99999999999999", ["--calib-obs", "1..1000000"],
+     "TMP/c"),
+    ("firmware_export.cli", "c --model A --out TMP/c --report --report-obs 999999999999999",
+     ["--report-obs", "1..1000000"], "TMP/c"),
+    ("firmware_export.cli", "onnx --run DIR --out TMP/o --random 999999999999999", ["--random", "1..1000000"],
+     "TMP/o"),
+    ("firmware_export.cli", "onnx --run DIR --out TMP/o --recorded 999999999999999", ["--recorded", "1..1000000"],
+     "TMP/o"),
+    ("firmware_export.cli", "c --model A --out TMP/c --spec-toml S2", ["--spec-toml", "exported for spec",
+                                                                      "leave --spec-toml out"], "TMP/c"),
+    ("firmware_export.cli", "c --model A --out TMP/c --role scout", ["--role scout", "pursuer actor",
+                                                                    "leave --role out"], "TMP/c"),
+    ("training.cli", "train --config EMPTY --out TMP/r", ["--config", "is empty", "configs/role_based.toml"], "TMP/r"),
+    ("training.cli", "train --config '' --out TMP/r", ["--config", "got ''"], "TMP/r"),
+    ("training.cli", "train --config C --out TMP/r --seed 99999999999999999999999", ["--seed", "4294967295"],
+     "TMP/r"),
+    ("training.cli", "train --config C --out TMP/r --n-envs 99999999999", ["--n-envs", "1..65536"], "TMP/r"),
+    ("training.cli", "train --config C --out TMP/r --threads 99999", ["--threads", "1..256"], "TMP/r"),
+    ("training.cli", "train --config C --out TMP/r --init-from RUNCUT", ["--init-from", "state.pt", "is damaged"],
+     "TMP/r"),
+    ("training.cli", "train --out RUNCUT --resume", ["--resume", "state.pt", "is damaged"], None),
+    ("training.cli", "evaluate --config EMPTY --episodes 1", ["--config", "is empty"], None),
+    ("training.cli", "evaluate --episodes 99999999999999", ["--episodes", "1..1000000"], None),
+    ("training.cli", "evaluate --episodes 1 --n-envs 99999999999", ["--n-envs", "1..65536"], None),
+    ("training.cli", "evaluate --episodes 1 --seed 99999999999999999999999", ["--seed", "4294967295"], None),
+    ("training.cli", "crossplay M --episodes 99999999999", ["--episodes", "1..1000000"], None),
+    ("training.cli", "crossplay M --episodes 1 --n-envs 99999999999", ["--n-envs", "1..65536"], None),
+    ("training.cli", "crossplay M --episodes 1 --seed 99999999999999999999999", ["--seed", "4294967295"], None),
+    ("training.cli", "plot --run NONE", ["--run", "not a training run folder"], "NONE"),
+    ("training.cli", "plot --run RUNCSV --out ''", ["--out", "got ''"], "RUNCSV/plots"),
+    ("training.cli", "sweep --steps 1 --ray ''", ["--ray", "got ''"], None),
+    ("training.cli", "sweep --steps 1 --ray bogus://x", ["--ray", "'bogus://x'", "ray://HOST:PORT"], None),
+    ("training.cli", "sweep --steps 1 --workers 99999", ["--workers", "'99999'"], None),
+    ("groundstation.cli", "sim --drones 99999999", ["--drones 99999999", "more drones than UDP ports"], None),
+    ("groundstation.cli", "sim --drones 0 --mavlink 99999999", ["--mavlink 99999999", "more drones than UDP ports"],
+     None),
+    ("groundstation.cli", "sim --drones 1 --mavlink 1 --base-port 14550 --mavlink-port 14550",
+     ["--mavlink-port 14550", "overlap", "--base-port"], None),
+    ("groundstation.cli", "sim --seed 99999999999999999999999", ["--seed", "4294967295"], None),
+    ("groundstation.cli", "demo --models M --seed 99999999999999999999999", ["--seed", "4294967295"], None),
+    ("groundstation.cli", "demo --models M --spec ''", ["--spec", "got ''", "leave --spec out"], None),
+    ("groundstation.cli", "demo --models M --flight-config ''", ["--flight-config", "got ''"], None),
+    ("groundstation.cli", "demo --models M --fence ''", ["--fence", "got ''"], None),
+    ("groundstation.cli", "fly --fleet FLEETURI", ["fleet.drones[0].uri", "'bogus://x'", "radio://"], None),
+    ("groundstation.cli", "land --fleet FLEETURI", ["fleet.drones[0].uri", "no known link scheme"], None),
+    ("groundstation.cli", "status --fleet FLEETURI", ["fleet.drones[0].uri", "no known link scheme"], None),
+    ("groundstation.cli", "replay MINILOG --start 5 --once", ["--start 5", "past the end", "2.0 s"], None),
+    ("groundstation.cli", "replay ''", ["LOG", "got ''"], None),
 ]
 
 
@@ -214,6 +291,24 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(module, argv, needles, 
         assert _fill(needle, paths) in lines[0], (needle, lines[0])
     if absent is not None:
         assert not Path(_fill(absent, paths)).exists()
+
+
+PROC_CASES = [("runtime.cli", "run --models M --json /proc/x.json"),
+              ("groundstation.cli", "demo --models M --log /proc/x.jsonl"),
+              ("groundstation.cli", "report MINILOG --plot /proc/r.png"),
+              ("training.cli", "train --config C --out /proc/r"),
+              ("training.cli", "evaluate --episodes 1 --json /proc/e.json"),
+              ("firmware_export.cli", "c --model A --out /proc/c")]
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+@pytest.mark.parametrize("module, argv", PROC_CASES, ids=[f"{m.split('.')[0]} {a}" for m, a in PROC_CASES])
+def test_an_output_in_a_folder_nobody_can_write_is_a_usage_error(module, argv, paths, capsys):
+    """/proc takes no new files even from root, for whom ``os.access`` says yes: the check creates a probe file,
+    so that the write does not fail only after the run (as it did with exit status 1)."""
+    rc, err = _run(module, [_token(t, paths) for t in argv.split()], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert "/proc" in err and "not writable" in err, err
 
 
 @pytest.mark.parametrize("damage, needle", [("delete", "no ONNX model at"), ("overwrite", "sha256 differs")])
@@ -260,6 +355,15 @@ def test_the_types_take_what_they_should():
             cliutil.int_in(10, 1000)(bad)
     assert cliutil.float_in(0.0, low_open=True, allow_inf=True)("inf") == math.inf
     assert cliutil.port("1") == 1 and cliutil.port("65535") == 65535
+    assert cliutil.seed("0") == 0 and cliutil.seed(str(cliutil.SEED_MAX)) == cliutil.SEED_MAX
+    for bad in ("-1", str(cliutil.SEED_MAX + 1), "1.5", ""):
+        with pytest.raises(argparse.ArgumentTypeError, match=">= 0 and <= 4294967295"):
+            cliutil.seed(bad)
+    args = argparse.Namespace(n_envs=70000, seed=None, flag=True)
+    with pytest.raises(argparse.ArgumentTypeError, match="^--n-envs: .*1..65536.*'70000'"):
+        cliutil.recheck(args, "n_envs", cliutil.int_in(1, 65536))
+    cliutil.recheck(args, "seed", cliutil.seed)  # not given: nothing to check
+    cliutil.recheck(args, "flag", cliutil.seed)  # a switch is not a number
     assert cliutil.float_list(cliutil.probability, "p", "0,1")("0, 0.5") == [0.0, 0.5]
     for bad in ("0", "65536", "-1", "x", "1.5"):
         with pytest.raises(argparse.ArgumentTypeError, match="1..65535"):

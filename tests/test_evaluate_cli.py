@@ -75,7 +75,7 @@ def test_plot_option_writes_a_png(tmp_path, capsys, monkeypatch):
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["--episodes", "0"], "--episodes: must be >= 1"),
+    (["--episodes", "0"], "--episodes: expected a whole number in 1..1000000"),
     (["--episodes", "many"], "expected a whole number"),
     (["--policy", "smart"], "invalid choice: 'smart'"),
     (["--config", "configs/nope.toml"], "does not exist"),

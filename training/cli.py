@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-from runtime.cliutil import (ArgumentParser, atomic_path, check_out_dir, check_out_file, nonneg_int, out_picture,
-                             positive_int)
+from runtime.cliutil import (ArgumentParser, atomic_path, check_in_file, check_out_dir, check_out_file, int_in,
+                             out_picture, port, positive_int, recheck, seed)
 from runtime.spec import SpecError
 
 DEFAULT_CONFIG = "configs/role_based.toml"
@@ -47,6 +47,13 @@ def _add_policy(p: argparse.ArgumentParser) -> None:
 
 _positive_int = positive_int  # crossplay imports it under this name
 
+episodes = int_in(1, 1_000_000, "episodes")
+"""Episodes an evaluation runs at most; more is a typo (the paper's tables use 200 to 1000)."""
+n_envs = int_in(1, 65_536, "envs")
+"""Environments stepped together at most: their state is allocated at once."""
+threads = int_in(1, 256, "threads")
+"""Torch CPU threads at most (each one a thread of its own; thousands fail to start)."""
+
 
 # ------------------------------------------------------------------------------------------- evaluate
 
@@ -70,10 +77,10 @@ def add_evaluate(sub: Any) -> None:
                "(mean and min-max over runs)")
     _add_config(p)
     _add_policy(p)
-    p.add_argument("--episodes", type=_positive_int, default=200, metavar="N",
+    p.add_argument("--episodes", type=episodes, default=200, metavar="N",
                    help="episodes per evaluated column (default 200)")
-    p.add_argument("--seed", type=nonneg_int, default=0, metavar="S", help="evaluation seed (default 0)")
-    p.add_argument("--n-envs", type=_positive_int, default=50, metavar="K",
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="evaluation seed (default 0)")
+    p.add_argument("--n-envs", type=n_envs, default=50, metavar="K",
                    help="episodes stepped together (default 50); the episodes drawn depend on it")
     p.add_argument("--json", metavar="PATH", help="write the metrics and the run's settings to this JSON file")
     p.add_argument("--plot", metavar="PNG", help="also draw one episode (seed S) to this PNG")
@@ -169,7 +176,7 @@ def add_plot(sub: Any) -> None:
                     "curves (rewards.png, distances.png, episode.png in --out, default RUN/plots/).")
     _add_config(p)
     _add_policy(p)
-    p.add_argument("--seed", type=nonneg_int, default=0, metavar="S", help="episode seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="episode seed (default 0)")
     p.add_argument("--out", metavar="PATH", help="PNG file to write (a folder with --run; default RUN/plots/)")
     p.add_argument("--run", metavar="RUN", help="a training run folder: plot its curves and its learned team")
     p.add_argument("--evader", metavar="SPEC", default="learned",
@@ -257,27 +264,93 @@ def check_outputs(args: argparse.Namespace) -> None:
     if args.command == "plot" and args.run and Path(args.run).exists() and not Path(args.run).is_dir():
         raise UsageError(f"--run: {args.run!r} is a file, not a training run folder; give the folder that "
                          f"`swarm-train train --out RUN` wrote")
-    if args.command == "plot" and args.out:  # a folder with --run, else the PNG
+    if args.command == "plot" and args.run is not None and not (Path(args.run) / "metrics.csv").is_file():
+        raise UsageError(f"--run: {args.run!r} is not a training run folder (no metrics.csv in it); give the folder "
+                         f"that `swarm-train train --out RUN` wrote")
+    if args.command == "plot" and args.out is not None:  # a folder with --run, else the PNG
         try:
             (check_out_dir if args.run else out_picture)(args.out)
         except argparse.ArgumentTypeError as exc:
             raise UsageError(f"--out: {exc}") from None
 
 
+RECHECKED = (("seed", seed), ("n_envs", n_envs), ("threads", threads), ("episodes", episodes))
+"""Options that parsers outside this module (train, crossplay) register with a looser type, checked again here
+with this module's types."""
+
+
+def _check_ray(address: str) -> None:
+    """``--ray``: 'local', 'auto', ray://HOST[:PORT] or HOST:PORT (Ray fails on anything else only after the
+    sweep's configs were read, with a traceback)."""
+    rest = address[len("ray://"):] if address.startswith("ray://") else address
+    host, colon, port_text = rest.partition(":")
+    ok = address in ("local", "auto") or (host and "/" not in rest and (
+        (colon and _is_port(port_text)) or (not colon and address.startswith("ray://"))))
+    if not ok:
+        raise UsageError(f"--ray: expected 'local', 'auto', ray://HOST:PORT or HOST:PORT (a Ray cluster address), "
+                         f"got {address!r}")
+
+
+def _is_port(text: str) -> bool:
+    try:
+        port(text)
+    except argparse.ArgumentTypeError:
+        return False
+    return True
+
+
+def _check_checkpoints(option: str, run: str | Path) -> None:
+    """The training state that ``--resume`` / ``--init-from`` loads opens as the zip archive torch writes: a
+    truncated one (a copy cut short, a full disk) fails only after the learner was built, with torch's traceback."""
+    import zipfile
+    for name in ("state.pt", "buffer.pt"):
+        path = Path(run) / "checkpoints" / name
+        if not path.is_file():
+            continue
+        try:
+            with zipfile.ZipFile(path):
+                pass
+        except (zipfile.BadZipFile, OSError) as exc:
+            raise UsageError(f"{option}: {str(path)!r} is damaged (not a readable torch checkpoint: {exc}): give "
+                             f"another run, or copy the checkpoint again") from None
+
+
 def check_config(args: argparse.Namespace) -> None:
-    """``--seed`` is >= 0 and ``--config`` (when the command reads it) is an existing file: else ``UsageError``
-    naming the option (the defaults, e.g. configs/role_based.toml, are relative to the repository root)."""
-    seed = getattr(args, "seed", None)
-    if isinstance(seed, int) and seed < 0:  # crossplay's and train's parsers take any int; numpy takes none < 0
-        raise UsageError(f"--seed: must be >= 0, got {seed}")
+    """The numbers that other modules' parsers take loosely (``RECHECKED``), sweep's ``--workers`` and ``--ray``,
+    and ``--config`` (when the command reads it: an existing, non-empty file): else ``UsageError`` naming the
+    option (the defaults, e.g. configs/role_based.toml, are relative to the repository root)."""
+    import os
+    try:
+        for name, check in RECHECKED:
+            recheck(args, name, check)
+        if args.command == "sweep":
+            recheck(args, "workers", int_in(1, max(2, os.cpu_count() or 1), "local processes, one per CPU"))
+    except argparse.ArgumentTypeError as exc:
+        raise UsageError(str(exc)) from None
+    if getattr(args, "ray", None) is not None:
+        _check_ray(args.ray)
+    if args.command == "train":
+        if args.init_from is not None:
+            _check_checkpoints("--init-from", args.init_from)
+        if args.resume:
+            _check_checkpoints("--resume", args.out)
     path = getattr(args, "config", None)
     learned = getattr(args, "run", None) or getattr(args, "models", None)  # their own config is used
     if not isinstance(path, str) or getattr(args, "resume", False) or learned:
         return
     p = Path(path)
-    if not p.exists():
+    if not p.exists() and path.strip():
         where = "" if p.is_absolute() else f" in {Path.cwd()} (the shipped configs are in the repository's configs/)"
         raise UsageError(f"--config: {path!r} does not exist{where}: give --config PATH")
+    try:
+        check_in_file(path)
+    except argparse.ArgumentTypeError as exc:
+        raise UsageError(f"--config: {exc}") from None
+    if args.command != "sweep":
+        from runtime.spec import load_toml
+        if not load_toml(p):  # every key has a default: an empty file would run the defaults, silently
+            raise UsageError(f"--config: {path!r} is empty (no name, [spec], [train] or [rewards]): give an "
+                             f"experiment TOML, e.g. configs/role_based.toml")
 
 
 def main(argv: list[str] | None = None) -> int:
