@@ -248,6 +248,8 @@ CASES = [
     ("training.cli", "crossplay M --episodes 1 --n-envs 99999999999", ["--n-envs", "1..65536"], None),
     ("training.cli", "crossplay M --episodes 1 --seed 99999999999999999999999", ["--seed", "4294967295"], None),
     ("training.cli", "plot --run NONE", ["--run", "not a training run folder"], "NONE"),
+    ("training.cli", "crossplay M models/role_based --episodes 1", ["RUN_OR_MODELS", "same folder as", "once"], None),
+    ("training.cli", "evaluate --models M --run M --episodes 1", ["--run/--models", "same folder as"], None),
     ("training.cli", "plot --run RUNCSV --out ''", ["--out", "got ''"], "RUNCSV/plots"),
     ("training.cli", "sweep --steps 1 --ray ''", ["--ray", "got ''"], None),
     ("training.cli", "sweep --steps 1 --ray bogus://x", ["--ray", "'bogus://x'", "ray://HOST:PORT"], None),

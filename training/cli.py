@@ -315,6 +315,25 @@ def _check_checkpoints(option: str, run: str | Path) -> None:
                              f"another run, or copy the checkpoint again") from None
 
 
+def _check_distinct(option: str, patterns: list[str] | None) -> None:
+    """No run or models folder is given twice (also as another spelling or through a glob): it would count twice
+    in the mean and min-max over runs, or fill two rows of a cross-play matrix with the same team."""
+    if not patterns:
+        return
+    from training.aggregate import expand_sources
+    seen: dict[Path, str] = {}
+    try:
+        sources = expand_sources(patterns)
+    except ValueError as exc:  # LearnedModelError: a glob that matches nothing
+        raise UsageError(str(exc)) from None
+    for source in sources:
+        key = Path(source).resolve()
+        if key in seen:
+            raise UsageError(f"{option}: {source!r} is the same folder as {seen[key]!r}: give each run or models "
+                             f"folder once")
+        seen[key] = source
+
+
 def check_config(args: argparse.Namespace) -> None:
     """The numbers that other modules' parsers take loosely (``RECHECKED``), sweep's ``--workers`` and ``--ray``,
     and ``--config`` (when the command reads it: an existing, non-empty file): else ``UsageError`` naming the
@@ -329,6 +348,10 @@ def check_config(args: argparse.Namespace) -> None:
         raise UsageError(str(exc)) from None
     if getattr(args, "ray", None) is not None:
         _check_ray(args.ray)
+    if args.command == "crossplay":
+        _check_distinct("RUN_OR_MODELS", args.sources)
+    if args.command == "evaluate":
+        _check_distinct("--run/--models", (args.run or []) + (args.models or []))
     if args.command == "train":
         if args.init_from is not None:
             _check_checkpoints("--init-from", args.init_from)
