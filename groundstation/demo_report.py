@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -137,10 +136,12 @@ def plot_flight(path: str, rows: list[dict], fence: FenceConfig, anchors: Anchor
     lo, hi = fence.bounds()
     ax.set_xlim(lo[0] - 0.5, hi[0] + 0.5)
     ax.set_ylim(lo[1] - 0.5, hi[1] + 0.5)
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    from runtime.cliutil import atomic_path
+    try:
+        with atomic_path(path) as tmp:  # never a half-drawn picture after an error or Ctrl-C
+            fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)
 
 
 def format_summary(res: dict[str, Any]) -> str:
