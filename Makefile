@@ -23,10 +23,11 @@ demo: $(STAMP)
 # subprocess and re-rewrote every test module's asserts: collection alone took 24 s instead of 10)
 PYTEST := PYTHONDONTWRITEBYTECODE= $(PY) -m pytest
 
-# two pytest-xdist workers: most of the suite waits on subprocesses, sockets and simulated flights, so two
+# two pytest-xdist workers, one test file on one worker (the files' module fixtures fly once for all their
+# tests): most of the suite waits on subprocesses, sockets and simulated flights, so two
 # workers: 848 s against 962 s serial with four trainings beside them (2026-12-02); PYTEST_WORKERS=0: serial
 PYTEST_WORKERS ?= 2
-XDIST = $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist worksteal)
+XDIST = $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
 
 test: $(STAMP)
 	$(PYTEST) -q $(XDIST)
