@@ -106,3 +106,17 @@ def test_shipped_sweep_files_build_every_job(path):
     for n, seed in sweep.jobs():
         cfg = job_config(sweep, n, seed)
         assert cfg.spec.team.n_pursuers == n and cfg.train.seed == seed
+
+
+def test_a_job_config_error_names_the_job_and_the_key_once(tmp_path):
+    p = tmp_path / "sweep.toml"
+    p.write_text(f'base = "{ROOT / "configs" / "multi_target.toml"}"\nn_pursuers = [2]\nseeds = [0]\n[train]\nsteps = 40\n')
+    with pytest.raises(SpecError, match=r"^multi_target\.toml \(n_pursuers=2, seed=0\)\.train\.imitation_steps: "
+                                        r"must be in \[0, train\.steps = 40\], got 5000$"):
+        job_config(SweepConfig.from_toml(p), 2, 0)
+
+
+def test_a_replay_buffer_too_big_to_allocate_is_refused_before_training():
+    from training.config import MAX_BUFFER, TrainConfig
+    with pytest.raises(SpecError, match=r"^train\.buffer_size: must be <= 5,000,000 transitions"):
+        TrainConfig(buffer_size=MAX_BUFFER + 1)

@@ -18,6 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from runtime.spec import SpecError, SwarmSpec, from_mapping, load_toml
+from runtime.tomlmap import SECTION_NAMES
+
+MAX_BUFFER = 5_000_000
+"""The bound of train.buffer_size: a role_based transition (12 agents' observations, next observations, actions,
+rewards, teacher actions) is about 5 KB, so 5 million are about 25 GB."""
 
 
 @dataclass(frozen=True)
@@ -268,6 +273,9 @@ class TrainConfig:
             widths = getattr(self, name)
             if not widths or any(w < 1 for w in widths):
                 raise SpecError(f"train.{name}: must be a non-empty list of positive widths, got {list(widths)!r}")
+        if self.buffer_size > MAX_BUFFER:
+            raise SpecError(f"train.buffer_size: must be <= {MAX_BUFFER:,} transitions (the replay buffer is "
+                            f"allocated when training starts), got {self.buffer_size!r}")
         if self.batch_size > self.buffer_size:
             raise SpecError(f"train.batch_size ({self.batch_size}) exceeds train.buffer_size ({self.buffer_size})")
         if self.evaders not in ("learned", "static", "scripted"):
@@ -352,3 +360,7 @@ class ExperimentConfig:
         import dataclasses
         return {"name": self.name, "spec": self.spec.to_dict(), "rewards": dataclasses.asdict(self.rewards),
                 "train": dataclasses.asdict(self.train)}
+
+
+# a table's own checks say train.x / rewards.x: from_mapping puts the full path in front instead of repeating it
+SECTION_NAMES.update({"TrainConfig": "train", "RewardConfig": "rewards"})
