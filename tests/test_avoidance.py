@@ -520,10 +520,10 @@ def test_off_the_layer_is_a_no_op_and_the_hash_is_unchanged():
     assert not np.array_equal(avoid_agents(ON, o, big.copy()), before)
 
 
-def test_the_shipped_models_still_load_and_act_without_the_layer():
+def test_the_paper_setting_models_still_load_and_act_without_the_layer():
     from runtime.policy import load_models, read_manifest
 
-    folder = ROOT / "models" / "role_based"
+    folder = ROOT / "models" / "paper_role_based"
     m = read_manifest(folder)
     doc = json.loads((folder / "manifest.json").read_text())
     assert "avoidance" not in doc["spec"] and m.spec.hash == doc["spec_hash"]
@@ -574,3 +574,16 @@ def test_onnx_policy_returns_the_layer_applied_to_the_network_output(on_models, 
         changed += int((want != net).any(axis=1).sum())
         assert pol.faults == 0
     assert changed > 0.1 * 3 * 400  # the layer changed a good share of the network's actions
+
+
+def test_the_shipped_models_carry_the_layer_and_apply_it():
+    from runtime.policy import load_models, read_manifest
+
+    folder = ROOT / "models" / "role_based"
+    m = read_manifest(folder)
+    assert m.spec.avoidance.enabled and m.spec.hash == json.loads((folder / "manifest.json").read_text())["spec_hash"]
+    _, pols = load_models(folder, agents=[0, len(m.agents) - 1])
+    for pol in pols:
+        assert pol.avoidance is not None
+        obs, _ = avoidance_cases(m.spec, pol.role, 4, seed=9)
+        assert np.isfinite(pol.act_batch(obs)).all() and pol.faults == 0

@@ -14,6 +14,7 @@ from runtime import cliutil
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = str(ROOT / "models" / "role_based")
+PAPER_MODELS = str(ROOT / "models" / "paper_role_based")  # the default spec's models (a fleet file without spec)
 ACTOR = str(ROOT / "models" / "role_based" / "pursuer_0.onnx")
 CONFIG = str(ROOT / "configs" / "role_based.toml")
 OTHER_SPEC = str(ROOT / "configs" / "multi_target.toml")  # not the spec of models/role_based
@@ -39,7 +40,7 @@ def paths(tmp_path, monkeypatch):
         f'[fleet]\nmodels = "{tmp_path / "adir"}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
         '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
     (tmp_path / "fleet_fence.toml").write_text(
-        f'[fleet]\nmodels = "{MODELS}"\nfence = "{tmp_path / "fence_small.toml"}"\n'
+        f'[fleet]\nmodels = "{PAPER_MODELS}"\nfence = "{tmp_path / "fence_small.toml"}"\n'
         '[[fleet.drones]]\nid = "cf1"\nuri = "radio://0/80/2M/E7E7E7E701"\nteam = "pursuer"\n')
     (tmp_path / "fleet_spec.toml").write_text(
         f'[fleet]\nmodels = "{MODELS}"\nspec = "{OTHER_SPEC}"\nfence = "{ROOT / "configs" / "fence.toml"}"\n'
@@ -200,7 +201,7 @@ CASES = [
     ("groundstation.cli", "fly --fleet FLEETMODELS", ["--fleet", "fleet.models", "manifest.json"], None),
     ("groundstation.cli", "fly --fleet FLEETSPEC", ["--fleet", "fleet.spec", "exported for spec"], None),
     ("groundstation.cli", "fly --fleet FLEETFENCE", ["--fleet", "fleet.fence FENCESMALL", "cuts 0.50 m into the arena",
-                                                     f"the models in {MODELS}"], None),
+                                                     f"the models in {PAPER_MODELS}"], None),
     ("groundstation.cli", "fly --fleet BAD --log FILE/f.jsonl", ["--log", "is a file"], "FILE/f.jsonl"),
     ("groundstation.cli", "status --fleet DIR", ["--fleet", "is a folder"], None),
     ("groundstation.cli", "land --fleet BAD", ["--fleet", "not valid TOML"], None),

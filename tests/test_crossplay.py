@@ -10,7 +10,7 @@ from cli_fixtures import in_process
 from training.learned_eval import evaluate_learned
 
 ROOT = Path(__file__).resolve().parent.parent
-A, B = "models/role_based", "models/role_based_int8"
+A, B = "models/paper_role_based", "models/role_based_int8"  # one spec: the paper setting's team
 
 
 def test_crossplay_matrix_diagonal_is_self_play_and_classical_row(tmp_path, capsys, monkeypatch):
@@ -20,7 +20,7 @@ def test_crossplay_matrix_diagonal_is_self_play_and_classical_row(tmp_path, caps
                               "--json", str(js), "--md", str(md), "--no-progress")
     assert rc == 0, err
     doc = json.loads(js.read_text())
-    assert doc["names"] == ["role_based", "role_based_int8"]
+    assert doc["names"] == ["paper_role_based", "role_based_int8"]
     m = doc["matrix"]["mean_min_dist"]
     assert len(m) == 2 and all(len(r) == 2 for r in m)
     # the diagonal is what `evaluate --evader learned` reports; the classical row meets the same evaders
@@ -34,7 +34,7 @@ def test_crossplay_matrix_diagonal_is_self_play_and_classical_row(tmp_path, caps
     assert doc["evader_mean"]["mean_min_dist"][1] == pytest.approx((m[0][1] + m[1][1]) / 2)
     assert "pursuers \\ evaders" in out and "classical" in out and f"{m[0][1]:.3f}" in out
     text = md.read_text()
-    assert "| pursuers \\ evaders | role_based | role_based_int8 | row mean |" in text
+    assert "| pursuers \\ evaders | paper_role_based | role_based_int8 | row mean |" in text
     assert f"| classical | {doc['classical']['mean_min_dist'][0]:.3f} |" in text
 
 

@@ -229,12 +229,12 @@ def test_models_vs_both_keeps_its_layout_with_the_split(tmp_path, capsys, monkey
 def test_several_runs_give_mean_and_min_max_beside_the_classical_team(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(ROOT)
     out, md = tmp_path / "agg.json", tmp_path / "agg.md"
-    rc, stdout, err = in_process(capsys, "evaluate", "--models", "models/role_based", "--models",
+    rc, stdout, err = in_process(capsys, "evaluate", "--models", "models/paper_role_based", "--models",
                                  "models/role_based_int*", "--evader", "scripted", "--episodes", "2", "--n-envs", "2",
                                  "--seed", "1", "--json", str(out), "--md", str(md), "--no-progress")
     assert rc == 0, err
     doc = json.loads(out.read_text())
-    assert doc["sources"] == ["models/role_based", "models/role_based_int8"]
+    assert doc["sources"] == ["models/paper_role_based", "models/role_based_int8"]
     e = doc["evaders"]["scripted"]
     assert len(e["runs"]) == 2
     for k in ("mean_min_dist", "tracking_rate", *SPLIT):
