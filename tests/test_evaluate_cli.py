@@ -278,3 +278,20 @@ def test_run_counts_compare_each_run_with_the_classical_team_on_its_evaders():
            "evaders": {"scripted": scripted, "learned": learned}}
     text = markdown(doc)
     assert "| scripted | 0.467 [0.400-0.600] | 0.500 |" in text and text.count("| 1/3 | 2/3 |") == 2
+
+
+def test_plot_draws_the_learned_team_and_refuses_several_teams(tmp_path, capsys, monkeypatch):
+    """``--plot`` with ``--run``/``--models`` draws one episode of that team (it was silently ignored); with
+    several teams it is a usage error before any episode runs."""
+    monkeypatch.chdir(ROOT)
+    png = tmp_path / "episode.png"
+    rc, stdout, err = in_process(capsys, "evaluate", "--models", "models/role_based", "--evader", "suite:hider",
+                                 "--episodes", "1", "--n-envs", "1", "--plot", str(png), "--no-progress")
+    assert rc == 0, err
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    assert f"wrote {png}" in stdout
+    other = tmp_path / "two.png"
+    rc, _, err = in_process(capsys, "evaluate", "--models", "models/role_based", "--models", "models/paper_role_based",
+                            "--episodes", "1", "--n-envs", "1", "--plot", str(other), "--no-progress")
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "--plot" in err and "one --run or --models" in err
+    assert not other.exists()

@@ -224,6 +224,9 @@ def cmd_evaluate_learned(args: Any) -> int:
     from training.evaluate import PAPER, format_table, write_text_atomic
     runs, models = expand_sources(args.run or []), expand_sources(args.models or [])
     if len(runs) + len(models) > 1:
+        if getattr(args, "plot", None):
+            raise UsageError(f"--plot {args.plot}: draws one team's episode, and {len(runs) + len(models)} teams "
+                             f"are given: give one --run or --models with --plot (or leave --plot out)")
         return cmd_evaluate_runs(args)
     kinds = expand(args.evader or "learned")
     results = evaluate_learned_kinds(runs[0] if runs else None, models[0] if models else None, kinds,
@@ -249,6 +252,11 @@ def cmd_evaluate_learned(args: Any) -> int:
             print(f"wrote {args.md}")
     except OSError as exc:
         raise UsageError(f"cannot write the output: {exc}") from None
+    if getattr(args, "plot", None):  # one episode of this team against the first kind of evaders
+        from training.cli import _plot
+        cfg, learned, _ = load_learned(run=runs[0] if runs else None, models=models[0] if models else None)
+        _plot(cfg, team(learned, kinds[0], args.seed), args.seed, args.plot,
+              f"{first['source']} vs {names[0]} evaders, {cfg.name}, held-out seed {args.seed}")
     return 0
 
 
