@@ -196,7 +196,8 @@ def test_an_actor_snapshot_is_evaluated_like_a_run(tmp_path):
 def test_es_needs_shared_actors_and_sane_settings():
     with pytest.raises(SpecError, match=r"train\.es_iterations: evolution strategies fly one actor per role"):
         _cfg(es_iterations=3)
-    for key, value in (("es_population", 0), ("es_sigma", 0.0), ("es_learned_share", 1.5), ("es_lr", -1.0)):
+    for key, value in (("es_population", 0), ("es_sigma", 0.0), ("es_learned_share", 1.5), ("es_lr", -1.0),
+                       ("es_capture_weight", -0.1)):
         with pytest.raises(SpecError, match=rf"train\.{key}"):
             _cfg(share_params=True, es_iterations=3, **{key: value})
 
@@ -221,3 +222,23 @@ def test_an_es_phase_after_the_steps_writes_its_actors_and_resumes(tmp_path):
     again = Trainer(longer, tmp_path / "run", resume=True)
     again.run(progress=False)
     assert len((tmp_path / "run" / "es.csv").read_text().splitlines()) == 4
+
+
+def test_the_es_fitness_is_the_weighted_sum_of_the_episode_metrics_captures_included():
+    from runtime.metrics import EpisodeRecord
+    from training.es import TeamES
+    cfg = _cfg(share_params=True, es_iterations=1, es_tracking_weight=1.0, es_distance_weight=3.0,
+               es_coverage_weight=0.1, es_contact_weight=0.2, es_capture_weight=0.05)
+    es = TeamES.__new__(TeamES)  # fitness reads only the config
+    es.tc = cfg.train
+    recs = [EpisodeRecord(min_dist=0.3, avg_dist=1.0, max_dist=2.0, tracking_rate=0.7, coverage=0.8,
+                          coverage_instant=0.2, collisions=3, captures=6, steps=100, teammate=1, team_obstacle=1,
+                          evader=1),
+            EpisodeRecord(min_dist=0.5, avg_dist=1.0, max_dist=2.0, tracking_rate=0.4, coverage=0.6,
+                          coverage_instant=0.2, collisions=0, captures=0, steps=100)]
+    one = 0.7 - 3.0 * 0.3 + 0.1 * 0.8 - 0.2 * 2 + 0.05 * 6
+    two = 0.4 - 3.0 * 0.5 + 0.1 * 0.6
+    assert es.fitness(recs) == pytest.approx((one + two) / 2)
+    no_captures = dataclasses.replace(cfg.train, es_capture_weight=0.0)
+    es.tc = no_captures
+    assert es.fitness(recs) == pytest.approx((one - 0.05 * 6 + two) / 2)

@@ -235,6 +235,10 @@ class TrainConfig:
     """ES fitness: + weight x episode coverage [1]."""
     es_contact_weight: float = 0.1
     """ES fitness: - weight x the team's own contacts per episode (teammates and obstacles) [1]."""
+    es_capture_weight: float = 0.0
+    """ES fitness: + weight x captures per episode (onsets of a pursuer-team agent touching an evader) [1]. The
+    paper's pursuers are paid on contact; a clone of the classical team shadows its target a few centimetres off
+    instead of touching it."""
     es_learned_share: float = 0.3
     """Share of ES episodes whose evaders are the run's co-trained actors (frozen); the rest meet the training
     pool (``training.evader_suite.TrainingPool``). The held-out suite and the scripted evaders are never met."""
@@ -304,7 +308,8 @@ class TrainConfig:
         for name in ("es_sigma", "es_lr"):
             if not getattr(self, name) > 0:
                 raise SpecError(f"train.{name}: must be > 0, got {getattr(self, name)!r}")
-        for name in ("es_tracking_weight", "es_distance_weight", "es_coverage_weight", "es_contact_weight"):
+        for name in ("es_tracking_weight", "es_distance_weight", "es_coverage_weight", "es_contact_weight",
+                     "es_capture_weight"):
             if not getattr(self, name) >= 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 <= self.es_learned_share <= 1.0:

@@ -9,6 +9,7 @@ along the rank-weighted differences with Adam. What is scored is what the evalua
 
     fitness = tracking_rate x es_tracking_weight - mean_min_dist x es_distance_weight
               + coverage x es_coverage_weight - team_contacts x es_contact_weight
+              + captures x es_capture_weight
 
 Every member of a population meets the same episodes (common random numbers: the same starts, obstacles and
 evaders with the same drawn parameters), so a difference in fitness is a difference in the actors, not in
@@ -196,7 +197,7 @@ class TeamES:
         tc = self.tc
         return float(np.mean([tc.es_tracking_weight * r.tracking_rate - tc.es_distance_weight * r.min_dist
                               + tc.es_coverage_weight * r.coverage - tc.es_contact_weight * r.team_contacts
-                              for r in records]))
+                              + tc.es_capture_weight * r.captures for r in records]))
 
     # ----------------------------------------------------------------------------------------- update
     def step(self) -> dict[str, float]:
