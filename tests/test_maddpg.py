@@ -464,6 +464,41 @@ def test_obs_scaling_maps_the_spec_ranges_to_unit_and_folds_into_the_exported_fi
             torch.testing.assert_close(actor(obs[:, i, :actor.obs_dim]), want[:, i], rtol=1e-5, atol=1e-5)
 
 
+def test_the_offset_gain_scales_only_the_offset_columns_and_folds_into_the_exported_first_layer():
+    from runtime.spec import SpecError
+    plain, boosted = MADDPG(_cfg(obs_scaling=True).spec, _cfg(obs_scaling=True).train), None
+    cfg = _cfg(obs_scaling=True, obs_offset_gain=4.0)
+    boosted = MADDPG(cfg.spec, cfg.train)
+    sp = cfg.spec
+    for i, role in enumerate(sp.roles):
+        cols = [c for f in sp.layout(role).fields for _ in range(f.rows) for c in f.columns]
+        ratio = boosted._in_scale[i, 0, :len(cols)] / plain._in_scale[i, 0, :len(cols)]
+        want = torch.tensor([4.0 if c in ("dx", "dy") else 1.0 for c in cols])
+        torch.testing.assert_close(ratio, want)
+        assert sum(c in ("dx", "dy") for c in cols) >= 2  # the targets' offsets at least
+    with torch.no_grad():
+        for w in boosted.actors.weights:
+            w.mul_(3.0)
+    g = torch.Generator().manual_seed(1)
+    n, d = sp.n_agents, sp.max_obs_dim
+    obs = (boosted._obs_lo + boosted._obs_span * torch.rand(n, 300, d, generator=g)).transpose(0, 1)
+    want = boosted.act(obs)
+    for i, actor in enumerate(boosted.to_actors()):
+        with torch.no_grad():
+            torch.testing.assert_close(actor(obs[:, i, :actor.obs_dim]), want[:, i], rtol=1e-5, atol=1e-5)
+    for bad, field in (({"obs_offset_gain": 0.0, "obs_scaling": True}, "train.obs_offset_gain"),
+                       ({"obs_offset_gain": float("inf"), "obs_scaling": True}, "train.obs_offset_gain"),
+                       ({"obs_offset_gain": 2.0}, "train.obs_scaling = true")):
+        with pytest.raises(SpecError, match=field):
+            TrainConfig(**bad)
+    # a learner state saved before the option existed loads with the default
+    sd = plain.state_dict()
+    del sd["options"]["obs_offset_gain"]
+    MADDPG(plain.spec, plain.cfg).load_state_dict(sd)
+    with pytest.raises(ValueError, match="train.obs_offset_gain = 1.0"):
+        MADDPG(sp, cfg.train).load_state_dict(sd)
+
+
 def test_obs_scaled_actors_export_to_onnx_that_acts_as_the_learner(tmp_path):
     from firmware_export.onnx_export import export_run
     from training.checkpoint import save_actors

@@ -12,6 +12,8 @@ steps = 200000
 """
 from __future__ import annotations
 
+import math
+
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -191,6 +193,11 @@ class TrainConfig:
     obs_scaling: bool = False
     """Actors see observations mapped from the spec's per-field ranges (``spec.layout(role).bounds()``) to
     [-1, 1]; the map is folded into the first layer on export, so exported actors take raw observations."""
+    obs_offset_gain: float = 1.0
+    """With ``obs_scaling``: the relative offsets (every field's ``dx``, ``dy`` columns: targets, teammates,
+    obstacles) are scaled this many times more than their range asks ([-6, 6] m -> [-gain, gain]), so that the
+    first layer resolves centimetres near a target without weights that Adam's small steps take tens of
+    thousands of updates to grow. Folded into the first layer on export like the rest of the scaling."""
     teacher: str = "none"
     """A teacher for the actors: "none" (the paper's), or "classical": ``training.baselines.ClassicalPursuers``
     for the pursuer team's rows and ``FleeingEvaders`` for the evaders' (the classical team, which reads the
@@ -329,6 +336,11 @@ class TrainConfig:
         if self.teacher != "none" and self.evaders == "static":
             raise SpecError("train.teacher: the classical teacher's evaders flee; train.evaders = 'static' holds "
                             "them still: use train.evaders = 'learned' or 'scripted'")
+        if not (math.isfinite(self.obs_offset_gain) and self.obs_offset_gain > 0):
+            raise SpecError(f"train.obs_offset_gain: must be a finite number > 0, got {self.obs_offset_gain!r}")
+        if self.obs_offset_gain != 1.0 and not self.obs_scaling:
+            raise SpecError(f"train.obs_offset_gain = {self.obs_offset_gain!r} scales the scaled inputs: set "
+                            f"train.obs_scaling = true, or leave obs_offset_gain at 1")
         for name in ("share_params", "obs_scaling"):
             if not isinstance(getattr(self, name), bool):
                 raise SpecError(f"train.{name}: must be true or false, got {getattr(self, name)!r}")

@@ -176,7 +176,7 @@ def global_state(spec: SwarmSpec, obs: torch.Tensor) -> torch.Tensor:
     return torch.cat([pv[..., :2].reshape(k, -1), pv[..., 2:].reshape(k, -1), obst.reshape(k, -1)], dim=1)
 
 
-OPTIONS = ("algorithm", "critic", "share_params", "obs_scaling")
+OPTIONS = ("algorithm", "critic", "share_params", "obs_scaling", "obs_offset_gain")
 """The ``TrainConfig`` fields that shape the learner's tensors (a state dict loads only into the same)."""
 
 
@@ -247,17 +247,21 @@ class MADDPG:
         # penalty's random observations and the obs_scaling map
         lo = torch.zeros(n, 1, d)
         hi = torch.zeros(n, 1, d)
+        gain = torch.ones(n, 1, d)  # train.obs_offset_gain on the offset columns
         for i, role in enumerate(spec.roles):
-            r_lo, r_hi = spec.layout(role).bounds()
+            layout = spec.layout(role)
+            r_lo, r_hi = layout.bounds()
             lo[i, 0, :len(r_lo)] = torch.tensor(r_lo)
             hi[i, 0, :len(r_hi)] = torch.tensor(r_hi)
+            offset = [c in ("dx", "dy") for f in layout.fields for _ in range(f.rows) for c in f.columns]
+            gain[i, 0, :len(offset)][torch.tensor(offset)] = cfg.obs_offset_gain
         self._obs_lo, self._obs_span = lo.to(dev), (hi - lo).to(dev)
         self._in_scale = self._in_shift = None
-        if cfg.obs_scaling:  # x -> 2 (x - lo) / span - 1; padding columns (span 0) stay 0
+        if cfg.obs_scaling:  # x -> gain (2 (x - lo) / span - 1); padding columns (span 0) stay 0
             span = hi - lo
             scale = torch.where(span > 0, 2.0 / span.clamp(min=1e-12), torch.zeros(()))
-            self._in_scale = scale.to(dev)
-            self._in_shift = torch.where(span > 0, -lo * scale - 1.0, torch.zeros(())).to(dev)
+            self._in_scale = (scale * gain).to(dev)
+            self._in_shift = (torch.where(span > 0, -lo * scale - 1.0, torch.zeros(())) * gain).to(dev)
         self.reg_gen = torch.Generator(device=dev).manual_seed(cfg.seed + 7)
         self.target_gen = torch.Generator(device=dev).manual_seed(cfg.seed + 8)
         self._last_actor: dict[str, float] = {}
@@ -474,9 +478,10 @@ class MADDPG:
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         # absent in checkpoints written before the options: those were trained with every option off
         saved = sd.get("options", {name: TrainConfig.__dataclass_fields__[name].default for name in OPTIONS})
-        for name in OPTIONS:
-            if saved.get(name) != getattr(self.cfg, name):
-                raise ValueError(f"this learner state was trained with train.{name} = {saved.get(name)!r}, the "
+        for name in OPTIONS:  # an option newer than the checkpoint was at its default then
+            was = saved.get(name, TrainConfig.__dataclass_fields__[name].default)
+            if was != getattr(self.cfg, name):
+                raise ValueError(f"this learner state was trained with train.{name} = {was!r}, the "
                                  f"config has {getattr(self.cfg, name)!r}: use the run's own config.toml")
         self.actors.load_state_dict(sd["actors"])
         self.critics.load_state_dict(sd["critics"])
