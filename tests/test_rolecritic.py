@@ -197,7 +197,8 @@ def test_es_needs_shared_actors_and_sane_settings():
     with pytest.raises(SpecError, match=r"train\.es_iterations: evolution strategies fly one actor per role"):
         _cfg(es_iterations=3)
     for key, value in (("es_population", 0), ("es_sigma", 0.0), ("es_learned_share", 1.5), ("es_lr", -1.0),
-                       ("es_capture_weight", -0.1)):
+                       ("es_capture_weight", -0.1), ("es_rank", "median"), ("es_pool", ["hider"]),
+                       ("es_pool", ["orbiter", "orbiter"])):
         with pytest.raises(SpecError, match=rf"train\.{key}"):
             _cfg(share_params=True, es_iterations=3, **{key: value})
 
@@ -242,3 +243,49 @@ def test_the_es_fitness_is_the_weighted_sum_of_the_episode_metrics_captures_incl
     no_captures = dataclasses.replace(cfg.train, es_capture_weight=0.0)
     es.tc = no_captures
     assert es.fitness(recs) == pytest.approx((one - 0.05 * 6 + two) / 2)
+
+
+def _rec(min_dist: float):
+    from runtime.metrics import EpisodeRecord
+    return EpisodeRecord(min_dist=min_dist, avg_dist=1.0, max_dist=2.0, tracking_rate=0.5, coverage=0.5,
+                         coverage_instant=0.1, collisions=0, captures=0, steps=100)
+
+
+def test_es_rank_episode_gives_every_episode_the_same_say():
+    """Member a is a little better than b in two episodes and much worse in a third: by total fitness b wins,
+    by per-episode ranks a wins (2 of 3 episodes)."""
+    from training.es import TeamES
+    es = TeamES.__new__(TeamES)
+    a = [_rec(0.20), _rec(0.20), _rec(1.50)]
+    b = [_rec(0.21), _rec(0.21), _rec(0.50)]
+    c = [_rec(0.30), _rec(0.30), _rec(2.00)]
+    es.tc = _cfg(share_params=True, es_iterations=1).train
+    total = es.ranking_scores([a, b, c])
+    assert total[1] > total[0] > total[2]
+    es.tc = _cfg(share_params=True, es_iterations=1, es_rank="episode").train
+    by_episode = es.ranking_scores([a, b, c])
+    np.testing.assert_allclose(by_episode, [(2 + 2 + 1) / 3, (1 + 1 + 2) / 3, 0.0])
+
+
+def test_es_pool_limits_the_scripted_opponents_es_meets(monkeypatch):
+    """With ``train.es_pool`` the ES rollouts' training pool holds only those behaviours."""
+    from training import es as es_mod
+    made = []
+    real = es_mod.TrainingPool
+
+    def spy(*args, **kw):
+        pool = real(*args, **kw)
+        made.append(list(pool.kinds))
+        return pool
+
+    monkeypatch.setattr(es_mod, "TrainingPool", spy)
+    spec = {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 1}, "avoidance": {"enabled": True}}
+    for pool, want in ((["orbiter", "billiard"], ["orbiter", "billiard"]), ([], sorted(es_mod.TrainingPool().kinds))):
+        cfg = _cfg(spec, share_params=True, es_iterations=1, es_population=1, es_episodes=2, es_learned_share=0.0,
+                   es_pool=pool)
+        from training.maddpg import MADDPG
+        learner = MADDPG(cfg.spec, cfg.train)
+        team = es_mod.TeamES(cfg.spec, cfg.rewards, learner.to_actors(), cfg.train, seed=0)
+        made.clear()
+        row = team.step()
+        assert np.isfinite(row["fitness"]) and sorted(made[-1]) == sorted(want)

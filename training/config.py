@@ -249,6 +249,12 @@ class TrainConfig:
     es_learned_share: float = 0.3
     """Share of ES episodes whose evaders are the run's co-trained actors (frozen); the rest meet the training
     pool (``training.evader_suite.TrainingPool``). The held-out suite and the scripted evaders are never met."""
+    es_rank: str = "total"
+    """How ES ranks its members: "total" (by mean fitness over the episodes) or "episode" (by mean rank within
+    each episode, so that episodes against opponents with larger spreads of fitness do not outvote the rest)."""
+    es_pool: tuple[str, ...] = ()
+    """The training-pool behaviours ES's scripted episodes draw from (``training.evader_suite.POOL`` kinds);
+    empty: all of them."""
     es_checkpoint_every: int = 5
     """ES iterations between two saves of the ES state and the actors."""
 
@@ -319,6 +325,13 @@ class TrainConfig:
                      "es_capture_weight"):
             if not getattr(self, name) >= 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
+        if self.es_rank not in ("total", "episode"):
+            raise SpecError(f"train.es_rank: must be \"total\" or \"episode\", got {self.es_rank!r}")
+        from training.evader_suite import POOL
+        bad = [k for k in self.es_pool if k not in POOL]
+        if bad or len(set(self.es_pool)) != len(self.es_pool):
+            raise SpecError(f"train.es_pool: {bad or list(self.es_pool)!r}: give distinct kinds of the training pool "
+                            f"{sorted(POOL)} (or [] for all)")
         if not 0.0 <= self.es_learned_share <= 1.0:
             raise SpecError(f"train.es_learned_share: must be in [0, 1], got {self.es_learned_share!r}")
         if self.es_iterations and not self.share_params:

@@ -173,7 +173,7 @@ class TeamES:
         env.restart(np.arange(g * e))
         obs = env.observe()
         learned = np.tile(rng.random(e) < self.tc.es_learned_share, g)
-        pool = TrainingPool(seed=seed + 2)
+        pool = TrainingPool(seed=seed + 2, kinds=list(self.tc.es_pool) or None)
         opponents = _Opponents(pool, self.frozen if self.evader_actors else None, learned)
         layers = [r.layers(t) for r, t in zip(self.roles, self._split(thetas))]
         act = np.zeros((g * e, spec.n_agents, 2))
@@ -193,11 +193,24 @@ class TeamES:
         recs = info["episodes"]
         return [recs[k * e:(k + 1) * e] for k in range(g)]
 
-    def fitness(self, records: list[Any]) -> float:
+    def episode_fitness(self, records: list[Any]) -> np.ndarray:
+        """The fitness of each episode record."""
         tc = self.tc
-        return float(np.mean([tc.es_tracking_weight * r.tracking_rate - tc.es_distance_weight * r.min_dist
-                              + tc.es_coverage_weight * r.coverage - tc.es_contact_weight * r.team_contacts
-                              + tc.es_capture_weight * r.captures for r in records]))
+        return np.array([tc.es_tracking_weight * r.tracking_rate - tc.es_distance_weight * r.min_dist
+                         + tc.es_coverage_weight * r.coverage - tc.es_contact_weight * r.team_contacts
+                         + tc.es_capture_weight * r.captures for r in records], dtype=np.float64)
+
+    def fitness(self, records: list[Any]) -> float:
+        """The mean of ``episode_fitness`` over the records."""
+        return float(self.episode_fitness(records).mean())
+
+    def ranking_scores(self, per_member: list[list[Any]]) -> np.ndarray:
+        """What the members are ranked by (``train.es_rank``): their mean fitness ("total"), or their mean rank
+        within each episode ("episode": every episode has the same say, whatever its opponent's scale)."""
+        if self.tc.es_rank == "episode":
+            f = np.stack([self.episode_fitness(r) for r in per_member])  # [members, episodes]
+            return f.argsort(0, kind="stable").argsort(0, kind="stable").mean(1)
+        return np.array([self.fitness(r) for r in per_member])
 
     # ----------------------------------------------------------------------------------------- update
     def step(self) -> dict[str, float]:
@@ -210,7 +223,8 @@ class TeamES:
         seed = int(self.rng.integers(2 ** 31))
         per_member = self.rollout(thetas, tc.es_episodes, seed)
         centre = per_member.pop()
-        f = np.array([self.fitness(r) for r in per_member])
+        f = self.ranking_scores(per_member)
+        best = max(self.fitness(r) for r in per_member)
         ranks = np.empty(2 * p)
         ranks[np.argsort(f)] = np.arange(2 * p)
         u = ranks / (2 * p - 1) - 0.5  # centred ranks
@@ -225,7 +239,7 @@ class TeamES:
         stepv = tc.es_lr * mh / (np.sqrt(vh) + 1e-8)
         self.theta = self.theta + stepv
         recs = centre
-        return {"iteration": self.iteration, "fitness": self.fitness(centre), "fitness_best": float(f.max()),
+        return {"iteration": self.iteration, "fitness": self.fitness(centre), "fitness_best": float(best),
                 "min_dist": float(np.mean([r.min_dist for r in recs])),
                 "tracking": float(np.mean([r.tracking_rate for r in recs])),
                 "coverage": float(np.mean([r.coverage for r in recs])),
