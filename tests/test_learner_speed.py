@@ -98,11 +98,18 @@ def test_updates_equal_the_straightforward_forms(variant, monkeypatch):
                            fast[f"critics.{next(iter(init.critics.state_dict()))}"])
 
 
-def test_shared_linear_narrow_and_wide_outputs_equal_matmul_plus_bias():
+def test_shared_linear_narrow_and_wide_outputs_and_their_gradients_equal_matmul_plus_bias():
     g = torch.Generator().manual_seed(0)
     for out in (2, networks.NARROW, networks.NARROW + 1, 64):
-        w, b = torch.randn(4, 9, out, generator=g), torch.randn(4, 1, out, generator=g)
-        x = torch.randn(4, 33, 9, generator=g)  # per model
-        torch.testing.assert_close(networks.shared_linear(x, w, b), torch.matmul(x, w) + b)
-        xs = torch.randn(33, 9, generator=g)  # shared by the models
-        torch.testing.assert_close(networks.shared_linear(xs, w, b), torch.matmul(xs, w) + b)
+        for shared in (False, True):
+            w, b = torch.randn(4, 9, out, generator=g), torch.randn(4, 1, out, generator=g)
+            x = torch.randn(33, 9, generator=g) if shared else torch.randn(4, 33, 9, generator=g)
+            grad = torch.randn(4, 33, out, generator=g)
+            got, want = [], []
+            for f, into in ((networks.shared_linear, got), (lambda x, w, b: torch.matmul(x, w) + b, want)):
+                xr, wr, br = (t.clone().requires_grad_(True) for t in (x, w, b))
+                y = f(xr, wr, br)
+                y.backward(grad)
+                into += [y.detach(), xr.grad, wr.grad, br.grad]
+            for a, e, name in zip(got, want, ("y", "dx", "dw", "db")):
+                torch.testing.assert_close(a, e, rtol=1e-5, atol=1e-5, msg=f"{name}, out={out}, shared={shared}")
