@@ -1,8 +1,8 @@
 """The learner's speed-ups (issue 13) compute the same updates: ``training.networks.shared_linear`` (bias added by
-the GEMM, narrow outputs multiplied transposed, ReLU in place) and the cached columns of
-``training.maddpg.global_state``, checked against the straightforward forms written out here, over several
-updates of every learner path (critic step, actor step with and without TD3+BC, imitation update, cloning
-step)."""
+the GEMM, narrow outputs multiplied transposed, ReLU in place), the role critics' split first layer in the actor
+step (``RoleCritics.forward_split``) and the cached columns of ``training.maddpg.global_state``, checked against
+the straightforward forms written out here, over several updates of every learner path (critic step, actor step
+with and without TD3+BC, imitation update, cloning step)."""
 from __future__ import annotations
 
 import pytest
@@ -18,7 +18,15 @@ VARIANTS = {
     "default": {},
     "global_matd3": {"critic": "global", "algorithm": "matd3", "policy_delay": 2},
     "local_shared_int8": {"share_params": True, "int8_robustness": 0.1},
+    "role_matd3": {"critic": "role", "algorithm": "matd3", "policy_delay": 1},
 }
+
+
+def _reference_forward_split(self, state, act):
+    """``RoleCritics.forward_split`` as one MLP call on the concatenated input, rows picked by model number."""
+    e, k = act.shape[0], act.shape[1]
+    x = torch.cat([state.unsqueeze(0).expand(e, k, state.shape[1]), act], dim=2)
+    return self.mlp(x, torch.arange(e))
 
 
 def _reference_forward_pre(self, x, index=None):
@@ -82,6 +90,7 @@ def test_updates_equal_the_straightforward_forms(variant, monkeypatch):
         m.setattr(networks.BatchedMLP, "forward_pre", _reference_forward_pre)
         m.setattr(maddpg, "global_state", _reference_global_state)
         m.setattr(rolecritic, "global_state", _reference_global_state)
+        m.setattr(rolecritic.RoleCritics, "forward_split", _reference_forward_split)
         ref_losses, ref = _run(cfg)
     assert len(fast_losses) == len(ref_losses) == 5
     for got, want in zip(fast_losses, ref_losses):
@@ -89,8 +98,12 @@ def test_updates_equal_the_straightforward_forms(variant, monkeypatch):
         for key in want:
             assert got[key] == pytest.approx(want[key], rel=1e-5, abs=1e-6), key
     assert fast.keys() == ref.keys()
+    # Adam moves a weight by up to lr (1e-3) whatever its gradient's size: on an element whose gradient is near
+    # zero a float-level difference in the gradient can shift the step by a few 1e-6 (measured 1.4e-6 on one
+    # element of 7488 in "shipped"), so the weights get 2 % of one step as absolute tolerance; the losses above
+    # are held to 1e-5 relative
     for key in ref:
-        torch.testing.assert_close(fast[key], ref[key], rtol=1e-5, atol=1e-6, msg=key)
+        torch.testing.assert_close(fast[key], ref[key], rtol=1e-5, atol=2e-5, msg=key)
     # the updates did move the weights (a comparison of untouched tensors would prove nothing)
     init = make_learner(cfg.spec, cfg.train)
     assert not torch.equal(init.actors.weights[0], fast["actors.weights.0"])
