@@ -150,6 +150,25 @@ def global_state_dim(spec: SwarmSpec) -> int:
     return 4 * spec.n_agents + 3 * spec.layout(spec.roles[0])["obstacles"].rows
 
 
+_COLUMNS: dict[tuple[int, str], tuple[SwarmSpec, torch.Tensor, Any]] = {}
+
+
+def _global_state_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, Any]:
+    """``global_state``'s observation columns of every agent's position and velocity ``[N, 4]`` and the obstacle
+    block's layout, built once per spec and device (the spec's layouts and a new index tensor cost more than
+    the gather itself on a learner's batch)."""
+    key = (id(spec), str(device))
+    hit = _COLUMNS.get(key)
+    if hit is None or hit[0] is not spec:  # the spec is kept in the entry, so its id is not reused meanwhile
+        cols = []
+        for role in spec.roles:
+            lay = spec.layout(role)
+            sp, sv = lay["self_pos"].start, lay["self_vel"].start
+            cols.append([sp, sp + 1, sv, sv + 1])
+        hit = _COLUMNS[key] = (spec, torch.tensor(cols, device=device), spec.layout(spec.roles[0])["obstacles"])
+    return hit[1], hit[2]
+
+
 def global_state(spec: SwarmSpec, obs: torch.Tensor) -> torch.Tensor:
     """The global state ``[K, 4N + 3M]`` of joint observations ``[K, N, D]``: every agent's position, then
     every agent's velocity [m, m/s; world frame], then every obstacle's centre and radius [m], obstacles
@@ -160,14 +179,8 @@ def global_state(spec: SwarmSpec, obs: torch.Tensor) -> torch.Tensor:
     observability: so it needs nothing beyond what the replay buffer stores, and the final observation of
     an episode (``info["final_obs"]``) gives the final state."""
     k, n = obs.shape[0], obs.shape[1]
-    cols = []
-    for role in spec.roles:
-        lay = spec.layout(role)
-        sp, sv = lay["self_pos"].start, lay["self_vel"].start
-        cols.append([sp, sp + 1, sv, sv + 1])
-    idx = torch.tensor(cols, device=obs.device).unsqueeze(0).expand(k, n, 4)
-    pv = torch.gather(obs, 2, idx)  # [K, N, 4]
-    ob = spec.layout(spec.roles[0])["obstacles"]
+    cols, ob = _global_state_columns(spec, obs.device)
+    pv = torch.gather(obs, 2, cols.unsqueeze(0).expand(k, n, 4))  # [K, N, 4]
     o = obs[:, 0, ob.slice].reshape(k, ob.rows, 3)
     centre = o[..., :2] + pv[:, :1, :2]  # agent 0 sees them relative to itself
     obst = torch.cat([centre, o[..., 2:]], dim=-1)

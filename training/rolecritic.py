@@ -25,7 +25,7 @@ from torch import nn
 from runtime.spec import SwarmSpec
 from training.config import TrainConfig
 from training.maddpg import MADDPG, adam, clip_grad_norm_per_agent, global_state, global_state_dim, soft_update
-from training.networks import BatchedMLP
+from training.networks import BatchedMLP, shared_linear
 
 
 class RoleCritics(nn.Module):
@@ -38,6 +38,22 @@ class RoleCritics(nn.Module):
 
     def forward(self, x: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
         return self.mlp(x, index)
+
+    def forward_split(self, state: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """Models ``0 .. E-1`` (twin 0 of each role) on the inputs ``[state, act[e]]``: ``state`` ``[B, S]``
+        shared by the rows, ``act`` ``[E, B, A]`` per row -> ``[E, B, heads]``. The first layer is split into
+        its state part (one GEMM for every row) and its action part, so that a gradient to the actions (the
+        actor step) never goes through the state's columns."""
+        e, s = act.shape[0], state.shape[1]
+        weights, biases = list(self.mlp.weights), list(self.mlp.biases)
+        w1 = weights[0][:e]
+        h = torch.baddbmm(shared_linear(state, w1[:, :s], biases[0][:e]), act, w1[:, s:]).relu_()
+        last = len(weights) - 1
+        for k in range(1, last + 1):
+            h = shared_linear(h, weights[k][:e], biases[k][:e])
+            if k < last:
+                h = h.relu_()
+        return h
 
 
 class RoleCriticMADDPG(MADDPG):
@@ -131,10 +147,9 @@ class RoleCriticMADDPG(MADDPG):
         else:
             mine = (self._member & self._learns.view(1, -1)).view(nr, 1, n, 1)  # [R, 1, N, 1]
             joint = torch.where(mine, mu.transpose(0, 1).unsqueeze(0), act.unsqueeze(0))  # [R, K, N, 2]
-            x = torch.cat([state.unsqueeze(0).expand(nr, k, state.shape[1]), joint.reshape(nr, k, 2 * n)], dim=2)
             self.critics.requires_grad_(False)
             try:
-                q_pi = self._per_agent(self.critics(x), 1)  # twin 0 of each role, [N, K]
+                q_pi = self._per_agent(self.critics.forward_split(state, joint.reshape(nr, k, 2 * n)), 1)  # twin 0
             finally:
                 self.critics.requires_grad_(True)
             if bc_n is not None:

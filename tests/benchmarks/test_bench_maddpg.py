@@ -4,10 +4,10 @@ run.
 
 - ``before``: the default learner (the paper's MADDPG) exactly as it was measured at 53 updates/s when issue 13
   was filed: per-tensor Adam, per-tensor soft updates and gradient scaling, and the critics' shared input
-  multiplied as a batched matmul over 12 broadcast copies (the old functions are restored below for this row
-  only);
+  multiplied as a batched matmul over 12 broadcast copies, and every layer as a batched matmul then a bias add
+  (the old functions are restored below for this row only);
 - ``default``: today's default learner (the same algorithm; fused Adam, fused soft updates and gradient
-  scaling, one GEMM for the critics' shared input);
+  scaling, one GEMM for the critics' shared input, ``training.networks.shared_linear``'s layers);
 - ``global``: ``train.critic = "global"`` (one critic per agent on the compact global state);
 - ``role``, ``role_share``: ``train.critic = "role"`` (one critic per role with a head per agent,
   ``training.rolecritic``), without and with ``train.share_params``;
@@ -60,6 +60,15 @@ def _old_adam(params, lr):
     return torch.optim.Adam(params, lr=lr)
 
 
+def _old_forward_pre(self, x, index=None):
+    layers = self.layers(index)
+    for k, (w, b) in enumerate(layers):
+        x = torch.matmul(x, w) + b
+        if k < len(layers) - 1:
+            x = torch.relu(x)
+    return x
+
+
 @pytest.fixture
 def one_thread():
     old = torch.get_num_threads()
@@ -76,6 +85,7 @@ def test_update(benchmark, variant, one_thread, monkeypatch):
         monkeypatch.setattr(maddpg, "soft_update", _old_soft_update)
         monkeypatch.setattr(maddpg, "clip_grad_norm_per_agent", _old_clip)
         monkeypatch.setattr(maddpg, "adam", _old_adam)
+        monkeypatch.setattr(networks.BatchedMLP, "forward_pre", _old_forward_pre)
     if VARIANTS[variant] is None:
         shipped = ExperimentConfig.from_toml(ROOT / "configs" / "role_based.toml")
         spec, tc = shipped.spec, dataclasses.replace(shipped.train, threads=1)
