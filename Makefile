@@ -25,8 +25,8 @@ PYTEST := PYTHONDONTWRITEBYTECODE= $(PY) -m pytest
 
 # two pytest-xdist workers, one test file on one worker (the files' module fixtures fly once for all their
 # tests): most of the suite waits on subprocesses, sockets and simulated flights, so two
-# workers: 848 s against 962 s serial with four trainings beside them; the whole make test 329 s on a quiet
-# machine (898 passed, 2026-12-02 19:12), 403 s with two trainings at nice 10 beside it; PYTEST_WORKERS=0: serial
+# workers: 848 s against 962 s serial with four trainings beside them; the whole make test 281 s on a quiet
+# machine (909 passed, 2026-12-03 07:38), 295 s with two trainings at nice 10 beside it; PYTEST_WORKERS=0: serial
 PYTEST_WORKERS ?= 2
 XDIST = $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
 
