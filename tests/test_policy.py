@@ -169,8 +169,14 @@ def test_act_allocates_nothing_in_steady_state(models, engine):
         after = tracemalloc.take_snapshot()
     finally:
         tracemalloc.stop()
-    grown = sum(s.size_diff for s in after.compare_to(before, "filename") if s.size_diff > 0)
-    assert grown < 4096, grown
+    # only the policy's own code counts: tracemalloc also sees every other thread of this process (a pytest-xdist
+    # worker's execnet threads, a thread another test left winding down), which allocated 5.5 kB in these 2000
+    # calls once under stress-ng (make test-under-load, 2026-12-03)
+    own = [tracemalloc.Filter(True, "*/runtime/*"), tracemalloc.Filter(True, "*onnxruntime*"),
+           tracemalloc.Filter(True, "*numba*"), tracemalloc.Filter(True, "*numpy*")]
+    diff = [s for s in after.filter_traces(own).compare_to(before.filter_traces(own), "filename") if s.size_diff > 0]
+    grown = sum(s.size_diff for s in diff)
+    assert grown < 4096, [(str(s.traceback), s.size_diff) for s in diff]
 
 
 def test_compiled_engine_reads_any_gemm_form_and_refuses_other_graphs(models, tmp_path):
