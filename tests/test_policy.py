@@ -161,22 +161,26 @@ def test_act_allocates_nothing_in_steady_state(models, engine):
     cmd = np.zeros(2)
     for _ in range(50):
         pol.act(x, out=cmd)
+    calls = 4000
     tracemalloc.start()
     try:
         before = tracemalloc.take_snapshot()
-        for _ in range(2000):
+        for _ in range(calls):
             pol.act(x, out=cmd)
         after = tracemalloc.take_snapshot()
     finally:
         tracemalloc.stop()
     # only the policy's own code counts: tracemalloc also sees every other thread of this process (a pytest-xdist
-    # worker's execnet threads, a thread another test left winding down), which allocated 5.5 kB in these 2000
-    # calls once under stress-ng (make test-under-load, 2026-12-03)
+    # worker's execnet threads, a thread another test left winding down), which allocated 5.5 kB in 2000 calls
+    # once under stress-ng (make test-under-load, 2026-12-03)
     own = [tracemalloc.Filter(True, "*/runtime/*"), tracemalloc.Filter(True, "*onnxruntime*"),
            tracemalloc.Filter(True, "*numba*"), tracemalloc.Filter(True, "*numpy*")]
     diff = [s for s in after.filter_traces(own).compare_to(before.filter_traces(own), "filename") if s.size_diff > 0]
     grown = sum(s.size_diff for s in diff)
-    assert grown < 4096, [(str(s.traceback), s.size_diff) for s in diff]
+    # under 2 bytes per call: one object kept per call is >= 16 bytes (64 kB here; an allocation added to act
+    # measured 171 kB in 2000 calls), while a one-off (a free list or a binding's cache refilled once under
+    # load: 4.1 kB in 2000 calls under stress-ng) stays far below
+    assert grown < 2 * calls, [(str(s.traceback), s.size_diff) for s in diff]
 
 
 def test_compiled_engine_reads_any_gemm_form_and_refuses_other_graphs(models, tmp_path):
