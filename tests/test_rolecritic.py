@@ -260,10 +260,10 @@ def test_es_rank_episode_gives_every_episode_the_same_say():
     b = [_rec(0.21), _rec(0.21), _rec(0.50)]
     c = [_rec(0.30), _rec(0.30), _rec(2.00)]
     es.tc = _cfg(share_params=True, es_iterations=1).train
-    total = es.ranking_scores([a, b, c])
+    total, _ = es.ranking_scores([a, b, c])
     assert total[1] > total[0] > total[2]
     es.tc = _cfg(share_params=True, es_iterations=1, es_rank="episode").train
-    by_episode = es.ranking_scores([a, b, c])
+    by_episode, _ = es.ranking_scores([a, b, c])
     np.testing.assert_allclose(by_episode, [(2 + 2 + 1) / 3, (1 + 1 + 2) / 3, 0.0])
 
 

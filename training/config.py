@@ -13,7 +13,6 @@ steps = 200000
 from __future__ import annotations
 
 import math
-
 import re
 from dataclasses import dataclass, field
 from pathlib import Path

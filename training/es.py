@@ -204,13 +204,15 @@ class TeamES:
         """The mean of ``episode_fitness`` over the records."""
         return float(self.episode_fitness(records).mean())
 
-    def ranking_scores(self, per_member: list[list[Any]]) -> np.ndarray:
-        """What the members are ranked by (``train.es_rank``): their mean fitness ("total"), or their mean rank
-        within each episode ("episode": every episode has the same say, whatever its opponent's scale)."""
+    def ranking_scores(self, per_member: list[list[Any]]) -> tuple[np.ndarray, np.ndarray]:
+        """(what the members are ranked by, their mean fitness). Ranked by (``train.es_rank``): their mean
+        fitness ("total"), or their mean rank within each episode ("episode": every episode has the same say,
+        whatever its opponent's scale)."""
+        f = np.stack([self.episode_fitness(r) for r in per_member])  # [members, episodes]
+        mean = f.mean(1)
         if self.tc.es_rank == "episode":
-            f = np.stack([self.episode_fitness(r) for r in per_member])  # [members, episodes]
-            return f.argsort(0, kind="stable").argsort(0, kind="stable").mean(1)
-        return np.array([self.fitness(r) for r in per_member])
+            return f.argsort(0, kind="stable").argsort(0, kind="stable").mean(1), mean
+        return mean, mean
 
     # ----------------------------------------------------------------------------------------- update
     def step(self) -> dict[str, float]:
@@ -223,8 +225,7 @@ class TeamES:
         seed = int(self.rng.integers(2 ** 31))
         per_member = self.rollout(thetas, tc.es_episodes, seed)
         centre = per_member.pop()
-        f = self.ranking_scores(per_member)
-        best = max(self.fitness(r) for r in per_member)
+        f, fit = self.ranking_scores(per_member)
         ranks = np.empty(2 * p)
         ranks[np.argsort(f)] = np.arange(2 * p)
         u = ranks / (2 * p - 1) - 0.5  # centred ranks
@@ -239,7 +240,7 @@ class TeamES:
         stepv = tc.es_lr * mh / (np.sqrt(vh) + 1e-8)
         self.theta = self.theta + stepv
         recs = centre
-        return {"iteration": self.iteration, "fitness": self.fitness(centre), "fitness_best": float(best),
+        return {"iteration": self.iteration, "fitness": self.fitness(centre), "fitness_best": float(fit.max()),
                 "min_dist": float(np.mean([r.min_dist for r in recs])),
                 "tracking": float(np.mean([r.tracking_rate for r in recs])),
                 "coverage": float(np.mean([r.coverage for r in recs])),
