@@ -4,6 +4,8 @@ alone, bad input braked, the QP no worse than the fallback, and a closed loop of
 from __future__ import annotations
 
 import math
+import os
+import signal
 
 import numpy as np
 import pytest
@@ -395,7 +397,13 @@ def test_a_late_answer_from_the_solver_process_is_never_taken_for_a_newer_reques
     worker = SolverProcess(LIM).start()
     try:
         args = lambda s: (s.positions, s.velocities, s.desired, s.controlled, s.previous)  # noqa: E731
-        assert worker.solve(*args(first), timeout=0.0) is None  # asked, not waited for: its answer comes late
+        # The child is held stopped while the first request is asked and not waited for, so its answer comes late
+        # whatever the scheduler does (a parent preempted right after sending could otherwise find it answered).
+        os.kill(worker._proc.pid, signal.SIGSTOP)
+        try:
+            assert worker.solve(*args(first), timeout=0.0) is None
+        finally:
+            os.kill(worker._proc.pid, signal.SIGCONT)
         velocity, braked, method = worker.solve(*args(second), timeout=30.0)
         ref = filter_velocities(*args(second)[:4], LIM, second.previous)
         assert method == ref.method
