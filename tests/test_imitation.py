@@ -32,6 +32,8 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "imitation_steps": 999}, "train.imitation_steps"),
     ({"teacher": "classical", "imitation_weight": -1.0}, "train.imitation_weight"),
     ({"teacher": "classical", "evaders": "static"}, "train.teacher"),
+    ({"teacher": "classical", "teacher_separation_gain": -1.0}, "train.teacher_separation_gain"),
+    ({"teacher": "classical", "teacher_separation_gain": float("nan")}, "train.teacher_separation_gain"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -102,6 +104,25 @@ def test_a_short_dagger_run_brings_the_actors_close_to_the_classical_team(tmp_pa
     assert tuple(header) == CSV_COLUMNS
     last = dict(zip(header, rows[-1].split(",")))
     assert float(last["imitation_mse"]) < 0.5 and 0.0 <= float(last["teacher_share"]) < 0.5
+
+
+def test_the_teacher_separation_gain_reaches_the_teacher_and_only_it(tmp_path):
+    """The teacher flies ``ClassicalPursuers`` with ``train.teacher_separation_gain``; its labels of two pursuers
+    crowding one evader are those of a classical team with that push, and differ from the default's, which stays
+    the classical team every evaluation compares with."""
+    trainer = Trainer(_cfg(teacher="classical", imitation_steps=100, teacher_separation_gain=1.0), tmp_path / "run")
+    assert trainer.teacher.pursuer_team.separation_gain == 1.0
+    assert ClassicalPursuers().separation_gain == 3.0 and TrainConfig().teacher_separation_gain == 3.0
+    env = trainer.env
+    obs = env.reset()
+    s = env.state
+    s.pos[:, 0], s.pos[:, 1], s.pos[:, 3] = [0.0, 0.1], [0.0, -0.1], [0.4, 0.0]  # two pursuers 0.2 m apart
+    s.obstacle_pos[:] = 2.5  # far away
+    got = trainer.teacher.act(obs, env)
+    gentle, default = ClassicalPursuers(), ClassicalPursuers()
+    gentle.separation_gain = 1.0
+    np.testing.assert_allclose(got, TeamPolicy(gentle, FleeingEvaders()).act(obs, env))
+    assert np.abs(got[:, :2] - default.act(obs, env)[:, :2]).max() > 0.05
 
 
 def test_the_paper_configs_have_no_teacher():

@@ -202,6 +202,11 @@ class TrainConfig:
     for the pursuer team's rows and ``FleeingEvaders`` for the evaders' (the classical team, which reads the
     true state). Its actions are recorded with every transition; ``imitation_steps`` and
     ``imitation_weight`` say how the actors learn from them."""
+    teacher_separation_gain: float = 3.0
+    """The classical teacher's teammate push at zero distance (``ClassicalPursuers.separation_gain``; 3 is the
+    classical team's, the bar every evaluation compares with). Students fly through ``[spec.avoidance]``, which
+    keeps teammates apart by itself; a gentler push leaves their labels near a crowded target closer to pursuit
+    (``results/issue13/label_source.py``)."""
     imitation_steps: int = 0
     """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
     beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor
@@ -304,6 +309,9 @@ class TrainConfig:
             raise SpecError(f"train.critic: {self.critic!r} is not one of 'local', 'global', 'role'")
         if self.teacher not in ("none", "classical"):
             raise SpecError(f"train.teacher: {self.teacher!r} is not one of 'none', 'classical'")
+        if not (math.isfinite(self.teacher_separation_gain) and self.teacher_separation_gain >= 0):
+            raise SpecError(f"train.teacher_separation_gain: must be a finite number >= 0, got "
+                            f"{self.teacher_separation_gain!r}")
         if self.imitation_steps < 0 or self.imitation_steps > self.steps:
             raise SpecError(f"train.imitation_steps: must be in [0, train.steps = {self.steps}], got "
                             f"{self.imitation_steps!r}")

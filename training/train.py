@@ -182,7 +182,9 @@ class Trainer:
         self.teacher = None
         if tc.teacher == "classical":  # the classical team (true state): pursuit + Lloyd scouting, fleeing evaders
             from training.baselines import ClassicalPursuers, FleeingEvaders, TeamPolicy
-            self.teacher = TeamPolicy(ClassicalPursuers(), FleeingEvaders())
+            pursuers = ClassicalPursuers()
+            pursuers.separation_gain = tc.teacher_separation_gain
+            self.teacher = TeamPolicy(pursuers, FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
         self._learns = self.agent.learn_mask.cpu().numpy() > 0  # [N] agents whose actors train
         self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
