@@ -74,7 +74,13 @@ def test_tiny_sweep_on_local_processes(tmp_path):
         assert row["env_steps"] == [40] and row["mean_min_dist"] > 0 and row["classical_mean_min_dist"] > 0
     assert doc["rows"][1]["paper_mean_min_dist"] == 0.6307  # Table I, n_p = 2
     assert (tmp_path / "runs" / "np2_s0" / "actors.pt").is_file()
-    assert (tmp_path / "s.md").read_text().count("\n| ") == 3
+    md = (tmp_path / "s.md").read_text()
+    assert md.count("\n| ") == 3
+    for row in doc["rows"]:
+        assert row["min_min_dist"] == row["max_min_dist"] == row["mean_min_dist"]  # one seed
+        assert 0 <= row["tracking_rate"] <= 1 and 0 <= row["classical_tracking_rate"] <= 1
+        assert row["seeds_as_close"] == int(row["mean_min_dist"] <= row["classical_mean_min_dist"])
+        assert f"| {row['n_pursuers']} | {row['mean_min_dist']:.4f} | {row['classical_mean_min_dist']:.4f} |" in md
     assert "| 2 |" in r.stdout
     assert "done: n_pursuers=1 seed=0: 40 env steps" in r.stdout  # the CLI prints what run_local echoes
 
@@ -120,3 +126,20 @@ def test_a_replay_buffer_too_big_to_allocate_is_refused_before_training():
     from training.config import MAX_BUFFER, TrainConfig
     with pytest.raises(SpecError, match=r"^train\.buffer_size: must be <= 5,000,000 transitions"):
         TrainConfig(buffer_size=MAX_BUFFER + 1)
+
+
+def test_the_summary_gives_mean_and_spread_over_seeds_beside_the_classical_team(tmp_path):
+    from training.sweep import summarize_sweep
+    sweep = SweepConfig.from_toml(_sweep_file(tmp_path, n_pursuers="[2]"))
+
+    def job(seed, ours, classical):
+        return {"n_pursuers": 2, "seed": seed,
+                "eval": {"mean_min_dist": ours, "mean_avg_dist": 2.0, "tracking_rate": 0.5},
+                "classical": {"mean_min_dist": classical, "tracking_rate": 0.4},
+                "train": {"train_time_s": 100.0 + seed, "env_steps": 40, "fps": 1.0}}
+
+    doc, md = summarize_sweep(sweep, [job(0, 0.5, 0.6), job(1, 0.7, 0.6), job(2, 0.6, 0.6)])
+    (row,) = doc["rows"]
+    assert row["per_seed"] == [0.5, 0.7, 0.6] and row["min_min_dist"] == 0.5 and row["max_min_dist"] == 0.7
+    assert abs(row["mean_min_dist"] - 0.6) < 1e-12 and row["seeds_as_close"] == 2  # 0.6 <= 0.6 counts
+    assert "| 2 | 0.6000 [0.5000-0.7000] | 0.6000 | 0.500 | 0.400 | 2/3 | 0.6307 | 40 | 100-102 |" in md

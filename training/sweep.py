@@ -206,10 +206,15 @@ def summarize_sweep(sweep: SweepConfig, results: list[dict[str, Any]]) -> tuple[
         if not mine:
             continue
         mins = [r["eval"]["mean_min_dist"] for r in mine]
+        cmins = [r["classical"]["mean_min_dist"] for r in mine]
         rows.append({"n_pursuers": n, "seeds": [r["seed"] for r in mine],
                      "mean_min_dist": sum(mins) / len(mins), "per_seed": mins,
+                     "min_min_dist": min(mins), "max_min_dist": max(mins),
                      "mean_avg_dist": sum(r["eval"]["mean_avg_dist"] for r in mine) / len(mine),
-                     "classical_mean_min_dist": sum(r["classical"]["mean_min_dist"] for r in mine) / len(mine),
+                     "tracking_rate": sum(r["eval"]["tracking_rate"] for r in mine) / len(mine),
+                     "classical_mean_min_dist": sum(cmins) / len(cmins),
+                     "classical_tracking_rate": sum(r["classical"]["tracking_rate"] for r in mine) / len(mine),
+                     "seeds_as_close": sum(m <= c for m, c in zip(mins, cmins)),
                      "paper_mean_min_dist": paper.get(n),
                      "train_time_s": [r["train"]["train_time_s"] for r in mine],
                      "env_steps": [r["train"]["env_steps"] for r in mine],
@@ -218,11 +223,17 @@ def summarize_sweep(sweep: SweepConfig, results: list[dict[str, Any]]) -> tuple[
            "eval_seed": sweep.eval_seed, "train_overrides": sweep.train, "rows": rows, "jobs": results}
     md = [f"Table I: mean minimum pursuer-evader distance [m] vs number of pursuers (2 evaders), "
           f"{sweep.eval_episodes} held-out episodes vs {sweep.eval_evader} evaders",
-          "", "| n_p | ours | classical | paper | env steps | train time [s] |", "|---|---|---|---|---|---|"]
+          "(ours: mean [min-max] over the seeds; classical: the classical team on the same evaders and episodes; "
+          "seeds: those whose team is as close as the classical team)",
+          "", "| n_p | ours | classical | tracking ours | classical | seeds | paper | env steps | train time [s] |",
+          "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p = r["paper_mean_min_dist"]
-        md.append(f"| {r['n_pursuers']} | {r['mean_min_dist']:.4f} | {r['classical_mean_min_dist']:.4f} | "
-                  f"{'' if p is None else f'{p:.4f}'} | {max(r['env_steps'])} | {max(r['train_time_s']):.0f} |")
+        spread = f" [{r['min_min_dist']:.4f}-{r['max_min_dist']:.4f}]" if len(r["seeds"]) > 1 else ""
+        md.append(f"| {r['n_pursuers']} | {r['mean_min_dist']:.4f}{spread} | {r['classical_mean_min_dist']:.4f} | "
+                  f"{r['tracking_rate']:.3f} | {r['classical_tracking_rate']:.3f} | "
+                  f"{r['seeds_as_close']}/{len(r['seeds'])} | {'' if p is None else f'{p:.4f}'} | "
+                  f"{max(r['env_steps'])} | {min(r['train_time_s']):.0f}-{max(r['train_time_s']):.0f} |")
     return doc, "\n".join(md) + "\n"
 
 
