@@ -143,3 +143,18 @@ def test_the_summary_gives_mean_and_spread_over_seeds_beside_the_classical_team(
     assert row["per_seed"] == [0.5, 0.7, 0.6] and row["min_min_dist"] == 0.5 and row["max_min_dist"] == 0.7
     assert abs(row["mean_min_dist"] - 0.6) < 1e-12 and row["seeds_as_close"] == 2  # 0.6 <= 0.6 counts
     assert "| 2 | 0.6000 [0.5000-0.7000] | 0.6000 | 0.500 | 0.400 | 2/3 | 0.6307 | 40 | 100-102 |" in md
+
+
+def _worker_facts(parent_only_module: str) -> tuple[str, bool]:
+    import multiprocessing as mp
+    return mp.get_start_method(), parent_only_module in sys.modules
+
+
+def test_local_workers_are_fresh_interpreters_not_forks():
+    # a forked worker inherits the parent's OpenMP runtime and ran a second, spinning thread beside its job
+    # (training.sweep.worker_pool); a spawned one imports only what its job needs
+    import colorsys  # noqa: F401  (imported here, in the parent only)
+    from training.sweep import worker_pool
+    with worker_pool(1) as pool:
+        method, inherited = pool.submit(_worker_facts, "colorsys").result(timeout=120)
+    assert method == "spawn" and not inherited

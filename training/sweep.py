@@ -28,6 +28,7 @@ import dataclasses
 import functools
 import json
 import logging
+import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -145,10 +146,18 @@ def _log_info(line: str) -> None:
     log.info("%s", line)
 
 
+def worker_pool(workers: int) -> ProcessPoolExecutor:
+    """The local workers: fresh interpreters (``spawn``), not forks of this process. A job in a forked worker
+    carried a second OpenMP thread of torch's libgomp spinning beside it whatever ``train.threads`` said (seen
+    with gdb: ``gomp_barrier_wait_end``), and two such jobs on the 2 cores ran at 120 frames/s against 640-760
+    in spawned workers, the same job and steps (``configs/sweep_v5.toml``, 2026-12-03)."""
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+
+
 def run_local(sweep: SweepConfig, workers: int, echo: Callable[[str], None] = _log_info) -> list[dict[str, Any]]:
     """Every job of ``sweep`` on ``workers`` local processes; ``echo`` gets one line per finished job."""
     results = []
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with worker_pool(workers) as pool:
         futs = {pool.submit(run_job, *_job_args(sweep, n, s)): (n, s) for n, s in sweep.jobs()}
         for fut in as_completed(futs):
             n, s = futs[fut]
