@@ -108,7 +108,7 @@ def test_the_shipped_sweep_files_are_found():
 @pytest.mark.parametrize("path", SHIPPED_SWEEPS, ids=lambda p: p.name)
 def test_shipped_sweep_files_build_every_job(path):
     sweep = SweepConfig.from_toml(path)
-    assert [n for n, _ in sweep.jobs()] == [2, 3, 4, 5, 6]
+    assert sweep.jobs() == [(n, s) for n in (2, 3, 4, 5, 6) for s in sweep.seeds]  # Table I's n_p, every seed
     for n, seed in sweep.jobs():
         cfg = job_config(sweep, n, seed)
         assert cfg.spec.team.n_pursuers == n and cfg.train.seed == seed
