@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -158,3 +160,48 @@ def test_local_workers_are_fresh_interpreters_not_forks():
     with worker_pool(1) as pool:
         method, inherited = pool.submit(_worker_facts, "colorsys").result(timeout=120)
     assert method == "spawn" and not inherited
+
+
+def _wait_for(predicate, timeout: float, what: str) -> None:
+    import time
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.2)
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_sigterm_stops_the_sweep_queued_jobs_never_start_running_ones_checkpoint(tmp_path):
+    # one worker, two long jobs: the first trains, the second is queued
+    p = _sweep_file(tmp_path).read_text().replace("steps = 40\n", "steps = 200000\n") \
+        .replace("checkpoint_every = 1000", "checkpoint_every = 100000").replace("imitation_steps = 20", "imitation_steps = 0")
+    (tmp_path / "sweep.toml").write_text(p)
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from training.cli import main; sys.exit(main())",
+                             "sweep", "--config", str(tmp_path / "sweep.toml"), "--workers", "1"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its own process group: the finally below ends every worker
+    first, second = tmp_path / "runs" / "np1_s0", tmp_path / "runs" / "np2_s0"
+    try:
+        metrics = first / "metrics.csv"
+        _wait_for(lambda: metrics.is_file() and len(metrics.read_text().splitlines()) >= 2, 300,
+                  "the first job's first metrics row")
+        proc.terminate()  # SIGTERM to the sweep alone, as `kill PID` does
+        out, err = proc.communicate(timeout=300)
+        _wait_for(lambda: not _group_alive(proc.pid), 120, "the sweep's workers to exit")
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # the sweep and its workers, whatever happened above
+        except ProcessLookupError:
+            pass
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "1 queued jobs not started" in out
+    assert (first / "checkpoints" / "state.pt").is_file()  # the running job saved where it was
+    assert not second.exists()  # the queued job never started

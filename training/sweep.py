@@ -29,8 +29,10 @@ import functools
 import json
 import logging
 import multiprocessing
+import os
+import signal
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -146,24 +148,58 @@ def _log_info(line: str) -> None:
     log.info("%s", line)
 
 
+def _worker_init() -> None:
+    # Ctrl-C reaches the workers too (one process group): a job in training stops with a checkpoint
+    # (training.train.install_stop_handlers); between jobs or in an evaluation a worker ignores it and the
+    # sweep, which cancelled every queued job, waits for it instead of a worker dying with a traceback
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def worker_pool(workers: int) -> ProcessPoolExecutor:
     """The local workers: fresh interpreters (``spawn``), not forks of this process. A job in a forked worker
     carried a second OpenMP thread of torch's libgomp spinning beside it whatever ``train.threads`` said (seen
     with gdb: ``gomp_barrier_wait_end``), and two such jobs on the 2 cores ran at 120 frames/s against 640-760
     in spawned workers, the same job and steps (``configs/sweep_v5.toml``, 2026-12-03)."""
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_init)
 
 
 def run_local(sweep: SweepConfig, workers: int, echo: Callable[[str], None] = _log_info) -> list[dict[str, Any]]:
-    """Every job of ``sweep`` on ``workers`` local processes; ``echo`` gets one line per finished job."""
+    """Every job of ``sweep`` on ``workers`` local processes; ``echo`` gets one line per finished job.
+
+    Ctrl-C or SIGTERM stops the sweep: no queued job starts, every job in training saves a checkpoint and
+    stops (a SIGTERM to this process is passed on to the workers; Ctrl-C in a terminal reaches them itself),
+    then ``KeyboardInterrupt`` propagates. Running the sweep again resumes those jobs."""
+    from training.train import install_stop_handlers
     results = []
-    with worker_pool(workers) as pool:
-        futs = {pool.submit(run_job, *_job_args(sweep, n, s)): (n, s) for n, s in sweep.jobs()}
-        for fut in as_completed(futs):
-            n, s = futs[fut]
-            res = fut.result()
-            echo(f"done: n_pursuers={n} seed={s}: " + _one_line(res))
-            results.append(res)
+    todo = list(sweep.jobs())
+    running: dict[Any, tuple[int, int]] = {}
+    pool = worker_pool(workers)
+    restore = install_stop_handlers()
+    try:
+        while todo or running:
+            # at most one job per worker handed to the pool: the pool moves what it is given into its call
+            # queue at once, beyond the reach of cancel(), so a stop would still start a queued job
+            while todo and len(running) < workers:
+                n, s = todo.pop(0)
+                running[pool.submit(run_job, *_job_args(sweep, n, s))] = (n, s)
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in done:
+                n, s = running.pop(fut)
+                res = fut.result()
+                echo(f"done: n_pursuers={n} seed={s}: " + _one_line(res))
+                results.append(res)
+    except KeyboardInterrupt as exc:
+        if str(exc) == "SIGTERM":  # sent to this process alone: pass it on to the jobs in training
+            for proc in list((pool._processes or {}).values()):
+                if proc.is_alive():
+                    os.kill(proc.pid, signal.SIGTERM)
+        echo(f"interrupted: {len(todo)} queued jobs not started; waiting for the {len(running)} running jobs to "
+             f"save their checkpoints")
+        raise
+    finally:
+        restore()
+        pool.shutdown(wait=True)
     return results
 
 
@@ -255,7 +291,8 @@ def add_sweep_parser(sub: Any) -> None:
         "sweep", help="train and evaluate the pursuer-count sweep (Table I) in parallel",
         description="Trains one run per (n_pursuers, seed) of a sweep file and evaluates each on held-out "
                     "seeds; local processes by default, a Ray cluster with --ray ADDRESS. A job whose run "
-                    "folder holds a checkpoint is resumed.")
+                    "folder holds a checkpoint is resumed. Ctrl-C or SIGTERM stops a local sweep: no queued "
+                    "job starts and every job in training saves a checkpoint first.")
     p.add_argument("--config", default="configs/sweep.toml", metavar="PATH",
                    help="sweep TOML (default configs/sweep.toml)")
     p.add_argument("--steps", type=positive_int, metavar="N", help="env steps per job (overrides the sweep's train.steps)")

@@ -390,7 +390,7 @@ class Trainer:
         self.mixer.reset(np.arange(tc.n_envs))
         self.returns[:] = 0.0
         interrupted = False
-        restore = _install_stop_handlers()
+        restore = install_stop_handlers()
         pending = None  # the last step's transitions, stored once the next actions are known
         try:
             while self.env_step < tc.steps:
@@ -501,7 +501,7 @@ class Trainer:
                 save_actors(self.out / "snapshots" / f"actors_es{es.iteration:04d}.pt", self.spec, final,
                             self.cfg.to_dict(), meta)
 
-        restore = _install_stop_handlers()
+        restore = install_stop_handlers()
         t0 = time.perf_counter()
         interrupted = False
         try:
@@ -587,7 +587,7 @@ def _postfix(row: dict[str, Any]) -> str:
     return " ".join(parts)
 
 
-def _install_stop_handlers() -> Any:
+def install_stop_handlers() -> Any:
     """Make SIGINT (Ctrl-C) and SIGTERM (``kill PID``) stop training with a checkpoint, also for a run started
     in the background (where the shell sets SIGINT to be ignored); returns a function restoring the old
     handlers. Only possible in the main thread; elsewhere a no-op."""
