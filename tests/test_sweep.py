@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from flight_fixtures import wait_until
 
 from runtime.spec import SpecError
 from training.sweep import SweepConfig, job_config
@@ -162,15 +163,6 @@ def test_local_workers_are_fresh_interpreters_not_forks():
     assert method == "spawn" and not inherited
 
 
-def _wait_for(predicate, timeout: float, what: str) -> None:
-    import time
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.2)
-
-
 def _group_alive(pgid: int) -> bool:
     try:
         os.killpg(pgid, 0)
@@ -191,11 +183,12 @@ def test_sigterm_stops_the_sweep_queued_jobs_never_start_running_ones_checkpoint
     first, second = tmp_path / "runs" / "np1_s0", tmp_path / "runs" / "np2_s0"
     try:
         metrics = first / "metrics.csv"
-        _wait_for(lambda: metrics.is_file() and len(metrics.read_text().splitlines()) >= 2, 300,
-                  "the first job's first metrics row")
+        # generous waits that still end inside pytest-timeout's 300 s, so that a hang reports what it waited for
+        assert wait_until(lambda: metrics.is_file() and len(metrics.read_text().splitlines()) >= 2, 120, 0.2), \
+            "the first job wrote no metrics row"
         proc.terminate()  # SIGTERM to the sweep alone, as `kill PID` does
-        out, err = proc.communicate(timeout=300)
-        _wait_for(lambda: not _group_alive(proc.pid), 120, "the sweep's workers to exit")
+        out, err = proc.communicate(timeout=120)
+        assert wait_until(lambda: not _group_alive(proc.pid), 30, 0.2), "a process of the sweep outlived it"
     finally:
         try:
             os.killpg(proc.pid, signal.SIGKILL)  # the sweep and its workers, whatever happened above

@@ -243,22 +243,22 @@ def _one_line(res: dict[str, Any]) -> str:
 
 def summarize_sweep(sweep: SweepConfig, results: list[dict[str, Any]]) -> tuple[dict[str, Any], str]:
     """(the sweep.json document, a Markdown table beside the paper's Table I)."""
-    from training.evaluate import PAPER
+    from training.evaluate import PAPER, mean_of
     paper = PAPER["table_i"]
     rows = []
     for n in sweep.n_pursuers:
         mine = [r for r in results if r["n_pursuers"] == n and "eval" in r]
         if not mine:
             continue
+        ours, classical = mean_of([r["eval"] for r in mine]), mean_of([r["classical"] for r in mine])
         mins = [r["eval"]["mean_min_dist"] for r in mine]
         cmins = [r["classical"]["mean_min_dist"] for r in mine]
         rows.append({"n_pursuers": n, "seeds": [r["seed"] for r in mine],
-                     "mean_min_dist": sum(mins) / len(mins), "per_seed": mins,
+                     "mean_min_dist": ours["mean_min_dist"], "per_seed": mins,
                      "min_min_dist": min(mins), "max_min_dist": max(mins),
-                     "mean_avg_dist": sum(r["eval"]["mean_avg_dist"] for r in mine) / len(mine),
-                     "tracking_rate": sum(r["eval"]["tracking_rate"] for r in mine) / len(mine),
-                     "classical_mean_min_dist": sum(cmins) / len(cmins),
-                     "classical_tracking_rate": sum(r["classical"]["tracking_rate"] for r in mine) / len(mine),
+                     "mean_avg_dist": ours["mean_avg_dist"], "tracking_rate": ours["tracking_rate"],
+                     "classical_mean_min_dist": classical["mean_min_dist"],
+                     "classical_tracking_rate": classical["tracking_rate"],
                      "seeds_as_close": sum(m <= c for m, c in zip(mins, cmins)),
                      "paper_mean_min_dist": paper.get(n),
                      "train_time_s": [r["train"]["train_time_s"] for r in mine],
