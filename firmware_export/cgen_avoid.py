@@ -29,6 +29,7 @@ _DOCS = {
     "BRAKING": "[m/s^2] deceleration the barrier plans with",
     "OBS_MARGIN": "[m] gap to an obstacle's or a wall's surface where the approach speed reaches zero",
     "MATE_MARGIN": "[m] gap between two teammates' bodies where the approach speed reaches zero",
+    "MATE_BRAKING": "[m/s^2] relative deceleration the teammate barrier plans with (each teammate takes half)",
     "SELF_POS": "observation index of the own x (y follows)",
     "SELF_VEL": "observation index of the own vx (vy follows)",
     "OBSTACLES": "observation index of the first obstacle slot (dx, dy, radius; radius 0: empty)",

@@ -6,11 +6,15 @@ demo) and the C app on the drone (``swarm_avoid`` in its ``swarm_logic.c``, with
 ``policy.h`` by ``firmware_export.cgen_avoid``). The actor proposes a velocity ``w``; the layer commands the
 velocity nearest to it (Euclidean) among those that are
 
-- safe: toward every obstacle and wall the speed is at most ``limit(gap, obstacle_margin)``, toward every
-  teammate in the observation at most ``limit(gap, teammate_margin) / 2`` (the teammate, flying the same layer,
-  takes the other half), with ``limit(g, m) = min(sqrt(2 braking (g - m)), (g - m) / control_period)`` for
-  ``g > m``, else 0: a drone that keeps to it can stop before the margin at ``braking`` (< its ``max_accel``)
-  and never covers the remaining gap within one control period. Each is a half-plane ``c . n >= -limit``;
+- safe: toward every obstacle and wall the speed is at most ``limit(gap, obstacle_margin, braking)``, toward every
+  teammate in the observation at most ``limit(gap, teammate_margin, mate_braking) / 2`` (the teammate, flying the
+  same layer, takes the other half), with ``limit(g, m, b) = min(sqrt(2 b (g - m)), (g - m) / control_period)``
+  for ``g > m``, else 0: a drone that keeps to it can stop before the margin at ``braking`` (< its ``max_accel``)
+  and never covers the remaining gap within one control period. Toward a teammate each of the two keeps its own
+  approach speed within ``sqrt(2 b g) / 2``, which shrinks as the pair closes in at up to twice that: following
+  it asks of each a deceleration of ``b / 2``, so ``mate_braking`` (``spec.avoidance.teammate_braking``, default
+  ``braking``) at ``2 x braking`` asks of each teammate what an obstacle asks. Each is a half-plane
+  ``c . n >= -limit``;
 - within the role's ``max_speed`` (a disc around zero);
 - reachable in one control period: within ``max_accel x control_period`` of the drone's own velocity (a disc),
   because the drone tracks its command with a norm-limited acceleration (``runtime.world``): a command it can
@@ -40,9 +44,9 @@ from numba import njit
 
 from runtime.spec import Role, SwarmSpec
 
-# params: float64 [9]
+# params: float64 [10]
 (P_OWN_RADIUS, P_MATE_RADIUS, P_MAX_SPEED, P_MAX_ACCEL, P_HALF_WIDTH, P_DT, P_BRAKING, P_OBS_MARGIN,
- P_MATE_MARGIN) = range(9)
+ P_MATE_MARGIN, P_MATE_BRAKING) = range(10)
 # layout: int64 [6]
 L_SELF_POS, L_SELF_VEL, L_OBSTACLES, L_N_OBSTACLES, L_MATES, L_N_MATES = range(6)
 MATE_COLUMNS = 5
@@ -66,7 +70,8 @@ def role_tables(spec: SwarmSpec, role: Role) -> tuple[np.ndarray, np.ndarray]:
     mate_radius = max(spec.role(r).radius for r in mates)  # slots do not say who is who: the largest
     rs = spec.role(role)
     params = np.array([rs.radius, mate_radius, rs.max_speed, rs.max_accel, spec.arena.half_width,
-                       spec.timing.control_period, av.braking, av.obstacle_margin, av.teammate_margin],
+                       spec.timing.control_period, av.braking, av.obstacle_margin, av.teammate_margin,
+                       av.mate_braking],
                       dtype=np.float64)
     ob, tm = lay["obstacles"], lay["teammates"]
     assert len(tm.columns) == MATE_COLUMNS and tm.columns[-1] == "valid", tm.columns
@@ -172,7 +177,7 @@ def avoid_rows(obs, act, params, layout):
     action for those)."""
     own_r, mate_r, vmax, amax = params[P_OWN_RADIUS], params[P_MATE_RADIUS], params[P_MAX_SPEED], params[P_MAX_ACCEL]
     hw, dt, braking = params[P_HALF_WIDTH], params[P_DT], params[P_BRAKING]
-    m_obs, m_mate = params[P_OBS_MARGIN], params[P_MATE_MARGIN]
+    m_obs, m_mate, mate_braking = params[P_OBS_MARGIN], params[P_MATE_MARGIN], params[P_MATE_BRAKING]
     sp, sv, ob0, n_ob = layout[L_SELF_POS], layout[L_SELF_VEL], layout[L_OBSTACLES], layout[L_N_OBSTACLES]
     tm0, n_tm = layout[L_MATES], layout[L_N_MATES]
     cap = n_tm + 4 + n_ob
@@ -199,7 +204,7 @@ def avoid_rows(obs, act, params, layout):
             d = math.sqrt(dx * dx + dy * dy)
             if obs[b, o + 4] > 0.5 and d > 1e-9:
                 nx[m], ny[m] = -dx / d, -dy / d
-                lim[m] = 0.5 * _limit(d - own_r - mate_r, m_mate, braking, dt)
+                lim[m] = 0.5 * _limit(d - own_r - mate_r, m_mate, mate_braking, dt)
                 m += 1
         for w in range(4):  # walls: +x, -x, +y, -y
             s = 1.0 if w % 2 == 0 else -1.0

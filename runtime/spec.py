@@ -233,6 +233,12 @@ class AvoidanceSpec:
     """Gap [m] to an obstacle's or a wall's surface where the allowed approach speed reaches zero."""
     teammate_margin: float = 0.1
     """Gap [m] between two teammates' bodies where the allowed approach speed reaches zero."""
+    teammate_braking: float = 0.0
+    """Relative deceleration [m/s^2] the teammate barrier plans with: toward a teammate a drone's approach speed
+    is at most half the barrier's limit at this deceleration (the teammate, flying the same layer, takes the other
+    half), so each of two teammates closing in brakes at half of it. 0 (the default): ``braking``, the layer as it
+    was before this field (each teammate braking at ``braking / 2``, twice as cautious as toward an obstacle);
+    ``2 x braking`` asks of each teammate the deceleration an obstacle asks (configs/role_based.toml)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -240,6 +246,13 @@ class AvoidanceSpec:
         _positive(self, "braking")
         _nonnegative(self, "obstacle_margin")
         _nonnegative(self, "teammate_margin")
+        _nonnegative(self, "teammate_braking")
+
+    @property
+    def mate_braking(self) -> float:
+        """The teammate barrier's relative deceleration [m/s^2] in effect: ``teammate_braking``, or ``braking``
+        where it is 0."""
+        return self.teammate_braking or self.braking
 
 
 def _default_pursuer() -> RoleSpec:
@@ -274,6 +287,10 @@ class SwarmSpec:
                 raise SpecError(f"avoidance.braking ({self.avoidance.braking} m/s^2) must be below every role's "
                                 f"max_accel (the smallest is {slowest} m/s^2) so that a drone can brake as planned: "
                                 f"lower it")
+            if self.avoidance.mate_braking / 2 >= slowest:
+                raise SpecError(f"avoidance.teammate_braking ({self.avoidance.teammate_braking} m/s^2) must be below "
+                                f"twice every role's max_accel (the smallest is {slowest} m/s^2): each of two "
+                                f"teammates brakes at half of it; lower it")
         biggest = max(self.pursuer.radius, self.scout.radius, self.evader.radius)
         if self.arena.n_obstacles and self.arena.obstacle_clearance <= 2 * biggest:
             raise SpecError(
@@ -317,10 +334,14 @@ class SwarmSpec:
 
     # -- (de)serialisation ---------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """Every table as plain values; ``avoidance`` only when it differs from its default (off), so that specs
-        without the layer serialise, and hash, exactly as before the table existed."""
-        return {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self)
-                if f.init and not (f.name == "avoidance" and self.avoidance == AvoidanceSpec())}
+        """Every table as plain values; ``avoidance`` only when it differs from its default (off), and its
+        ``teammate_braking`` only when set, so that specs without the layer, or without that field, serialise and
+        hash exactly as before the table, or the field, existed."""
+        out = {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self)
+               if f.init and not (f.name == "avoidance" and self.avoidance == AvoidanceSpec())}
+        if "avoidance" in out and not self.avoidance.teammate_braking:
+            del out["avoidance"]["teammate_braking"]
+        return out
 
     @property
     def hash(self) -> str:

@@ -272,12 +272,12 @@ typedef char swarm_check_avoid_layout[(SWARM_AVOID_SELF_POS == SWARM_OBS_SELF_PO
 #define SWARM_AVOID_N_CON (SWARM_AVOID_N_MATES + 4 + SWARM_AVOID_N_OBSTACLES)
 
 /* runtime.avoidance._limit: the approach speed [m/s] allowed at `gap` from a surface. */
-static float avoid_limit(float gap, float margin)
+static float avoid_limit(float gap, float margin, float braking)
 {
     const float g = gap - margin;
     float brake, step;
     if (!(g > 0.0f)) return 0.0f;
-    brake = sqrtf(2.0f * SWARM_AVOID_BRAKING * g);
+    brake = sqrtf(2.0f * braking * g);
     step = g / SWARM_AVOID_DT;
     return step < brake ? step : brake;
 }
@@ -413,7 +413,7 @@ static void avoid_constraints(const float obs[SWARM_POLICY_OBS_DIM], avoid_qp_t 
             q->nx[m] = -t[0] / d;
             q->ny[m] = -t[1] / d;
             q->lim[m] = 0.5f * avoid_limit(d - SWARM_AVOID_OWN_RADIUS - SWARM_AVOID_MATE_RADIUS,
-                                           SWARM_AVOID_MATE_MARGIN);
+                                           SWARM_AVOID_MATE_MARGIN, SWARM_AVOID_MATE_BRAKING);
             ++m;
         }
     }
@@ -422,7 +422,8 @@ static void avoid_constraints(const float obs[SWARM_POLICY_OBS_DIM], avoid_qp_t 
         const float p = k < 2 ? x : y;
         q->nx[m] = k < 2 ? -s : 0.0f;
         q->ny[m] = k < 2 ? 0.0f : -s;
-        q->lim[m] = avoid_limit(SWARM_AVOID_HALF_WIDTH - SWARM_AVOID_OWN_RADIUS - s * p, SWARM_AVOID_OBS_MARGIN);
+        q->lim[m] = avoid_limit(SWARM_AVOID_HALF_WIDTH - SWARM_AVOID_OWN_RADIUS - s * p, SWARM_AVOID_OBS_MARGIN,
+                                SWARM_AVOID_BRAKING);
     }
     for (k = 0; k < SWARM_AVOID_N_OBSTACLES; ++k) {
         const float *o = obs + SWARM_AVOID_OBSTACLES + SWARM_AVOID_OBSTACLE_COLS * k;
@@ -430,7 +431,7 @@ static void avoid_constraints(const float obs[SWARM_POLICY_OBS_DIM], avoid_qp_t 
         if (o[2] > 0.0f && d > 1e-9f) {  /* radius 0: an empty slot */
             q->nx[m] = -o[0] / d;
             q->ny[m] = -o[1] / d;
-            q->lim[m] = avoid_limit(d - o[2] - SWARM_AVOID_OWN_RADIUS, SWARM_AVOID_OBS_MARGIN);
+            q->lim[m] = avoid_limit(d - o[2] - SWARM_AVOID_OWN_RADIUS, SWARM_AVOID_OBS_MARGIN, SWARM_AVOID_BRAKING);
             ++m;
         }
     }
