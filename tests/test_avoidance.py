@@ -24,6 +24,8 @@ from runtime.world import World, action_to_velocity
 
 ROOT = Path(__file__).resolve().parent.parent
 ON = SwarmSpec.from_dict({"avoidance": {"enabled": True}})
+PAIR = SwarmSpec.from_dict({"avoidance": {"enabled": True, "teammate_braking": 3.0}})
+"""The shipped configs' layer: the teammate barrier planned at the pair's relative deceleration, 2 x braking."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -139,7 +141,7 @@ def constraints(spec: SwarmSpec, role: Role, obs: np.ndarray) -> tuple[np.ndarra
         d = math.hypot(dx, dy)
         if valid > 0.5 and d > 1e-9:
             normals.append((-dx / d, -dy / d))
-            limits.append(0.5 * _limit(d - own - mate_r - av.teammate_margin, b, dt))
+            limits.append(0.5 * _limit(d - own - mate_r - av.teammate_margin, av.teammate_braking or b, dt))
             hard.append(False)
     for n, gap in (((-1, 0), hw - own - x), ((1, 0), hw - own + x), ((0, -1), hw - own - y), ((0, 1), hw - own + y)):
         normals.append(n)
@@ -399,7 +401,8 @@ def test_a_single_active_constraint_is_the_exact_projection_onto_its_half_plane(
 
 def test_a_teammate_takes_half_the_budget_and_an_obstacle_all_of_it():
     """Head-on at the same gap, the drone already at the allowed speed: the approach speed left towards a
-    teammate is half that towards an obstacle."""
+    teammate is half that towards an obstacle; with ``teammate_braking`` the half of the barrier planned at that
+    deceleration."""
     lay = ON.layout(Role.PURSUER)
     gap = 0.3  # between the surfaces, before the margins
     b, dt = ON.avoidance.braking, ON.timing.control_period
@@ -414,6 +417,15 @@ def test_a_teammate_takes_half_the_budget_and_an_obstacle_all_of_it():
     a = np.array([[1.0, 0.0]])
     assert _apply(ON, Role.PURSUER, mate[None], a)[0, 0] == pytest.approx(to_mate, abs=1e-12)
     assert _apply(ON, Role.PURSUER, obst[None], a)[0, 0] == pytest.approx(to_obstacle, abs=1e-12)
+    # planned at the pair's relative deceleration (teammate_braking), each takes half of that barrier's limit
+    b_pair = PAIR.avoidance.teammate_braking
+    assert b_pair == 2 * b
+    to_mate_pair = 0.5 * _limit(gap - PAIR.avoidance.teammate_margin, b_pair, dt)
+    assert to_mate < to_mate_pair < to_obstacle
+    mate_pair = mate.copy()
+    mate_pair[lay["self_vel"].slice] = (to_mate_pair, 0.0)
+    assert _apply(PAIR, Role.PURSUER, mate_pair[None], a)[0, 0] == pytest.approx(to_mate_pair, abs=1e-12)
+    assert _apply(ON, Role.PURSUER, mate_pair[None], a)[0, 0] < to_mate_pair - 0.05
     # moving away is never limited, however close
     mate[t] = 0.1501
     mate[lay["self_vel"].slice] = (-1.0, 0.0)
@@ -445,15 +457,17 @@ def test_non_finite_observations_leave_the_action_alone():
 # (d) closed loop: a team flown straight at its goals through the layer
 
 
-@pytest.mark.parametrize("seed", [11, 21, 31])
-def test_closed_loop_no_obstacle_wall_or_teammate_contacts_in_200_envs_over_100_steps(seed):
+@pytest.mark.parametrize("spec_name, seed", [("ON", 11), ("ON", 21), ("ON", 31), ("PAIR", 11), ("PAIR", 21),
+                                             ("PAIR", 31)])
+def test_closed_loop_no_obstacle_wall_or_teammate_contacts_in_200_envs_over_100_steps(spec_name, seed):
     """Every agent of the default spec (layer on) is commanded at full speed straight at a goal: a random point
     of a square 30% wider than the arena (into the walls), an obstacle's centre, or a teammate's position; a
     new goal every 20 steps or when reached. The actions go through ``avoid_agents`` on the observations of
     ``encode_observations``; the world tracks them with its norm-limited acceleration. No agent may touch an
     obstacle or a wall, and no two pursuer-team agents, nor two evaders, may touch (pursuer-evader contacts are
-    captures, which the layer does not prevent)."""
-    spec, n_envs, steps = ON, 200, 100
+    captures, which the layer does not prevent). With the default teammate barrier and with the shipped one
+    (``PAIR``: each teammate brakes at ``braking``, not half of it)."""
+    spec, n_envs, steps = {"ON": ON, "PAIR": PAIR}[spec_name], 200, 100
     world = World(spec, n_envs=n_envs, seed=seed)
     rng = np.random.default_rng(seed + 1)
     st = world.reset()
@@ -490,7 +504,7 @@ def test_closed_loop_no_obstacle_wall_or_teammate_contacts_in_200_envs_over_100_
         mate_touch += int((contacts & team[None]).sum() // 2)
         wall_touch += int((np.abs(st.pos) >= hw - radius - 1e-9).any(-1).sum())  # the world stops them there
         new_goals((dist[..., 0] < 0.1) | (t % 20 == 19))
-    print(f"seed {seed}, {n_envs} envs x {steps} steps: {changed} agent-steps changed by the layer, {obstacle_touch} "
+    print(f"{spec_name} seed {seed}, {n_envs} envs x {steps} steps: {changed} agent-steps changed by the layer, {obstacle_touch} "
           f"obstacle contacts, {wall_touch} wall touches, {mate_touch} teammate contacts")
     assert changed > 0.1 * n_envs * steps * n  # the layer was at work, not idle
     assert (obstacle_touch, wall_touch, mate_touch) == (0, 0, 0)
@@ -516,6 +530,11 @@ def test_off_the_layer_is_a_no_op_and_the_hash_is_unchanged():
     assert SwarmSpec.from_dict({**d, "avoidance": {"enabled": False}}).hash == spec.hash
     assert ON.hash != spec.hash and "avoidance" in ON.to_dict()
     assert SwarmSpec.from_dict(json.loads(json.dumps(ON.to_dict()))).hash == ON.hash
+    # teammate_braking unset (0: braking) serialises and hashes as before the field existed; set, it counts
+    assert "teammate_braking" not in ON.to_dict()["avoidance"]
+    assert ON.avoidance.mate_braking == ON.avoidance.braking
+    assert PAIR.hash != ON.hash and PAIR.to_dict()["avoidance"]["teammate_braking"] == 3.0
+    assert SwarmSpec.from_dict(json.loads(json.dumps(PAIR.to_dict()))).hash == PAIR.hash
     # the layer on changes what a run with it does: the same state, its actions go through
     assert not np.array_equal(avoid_agents(ON, o, big.copy()), before)
 

@@ -61,6 +61,9 @@ def test_round_trip_through_dict():
     ({"arena": {"obstacle_clearance": 0.1}}, "spec.arena.obstacle_clearance"),
     ({"sensing": {"sensing_range": math.inf}}, "spec.sensing.sensing_range"),
     ({"arena": []}, "spec.arena"),
+    ({"avoidance": {"enabled": True, "teammate_braking": -1.0}}, "spec.avoidance.teammate_braking"),
+    ({"avoidance": {"enabled": True, "braking": 3.0}}, "spec.avoidance.braking"),
+    ({"avoidance": {"enabled": True, "teammate_braking": 6.0}}, "spec.avoidance.teammate_braking"),
 ])
 def test_bad_values_name_the_field(data, field):
     with pytest.raises(SpecError) as info:
