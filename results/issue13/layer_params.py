@@ -1,6 +1,7 @@
 """What the avoidance layer's parameters cost a team that pursues like the classical one: the classical team flown
-through the layer (runtime.avoidance) with its default parameters and with a less conservative barrier, against
-each kind of the held-out suite (the same episodes: evaluation seed 0). Min distance [m] / tracking, captures and
+through the layer (runtime.avoidance) with its default parameters, with a less conservative barrier, with the
+teammate barrier planned at the pair's relative deceleration (teammate_braking) and, as a diagnostic, without the
+teammate barrier, against each kind of the held-out suite (the same episodes: evaluation seed 0). Min distance [m] / tracking, captures and
 team contacts per episode, and the suite mean.
 
     .venv/bin/python results/issue13/layer_params.py [CONFIG] [EPISODES] [VARIANT,...]
@@ -11,7 +12,7 @@ import sys
 
 import numpy as np
 
-from runtime.avoidance import avoid_agents
+from runtime.avoidance import P_MATE_MARGIN, avoid_agents, avoid_rows, role_tables
 from training.baselines import ClassicalPursuers, TeamPolicy
 from training.config import ExperimentConfig
 from training.evader_suite import SUITE, make_suite_evader
@@ -20,6 +21,9 @@ from training.evaluate import evaluate, mean_of
 cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "configs/role_based.toml")
 eps = int(sys.argv[2]) if len(sys.argv) > 2 else 100
 nt = cfg.spec.team.n_team
+OFF = -100.0
+"""A teammate margin no spec accepts (it must be >= 0), set in the kernel's tables only: the teammate half-planes
+then allow more than any speed, and the layer keeps only its walls, obstacles and reachability."""
 VARIANTS = {  # name: AvoidanceSpec overrides (None: no layer)
     "no layer": None,
     "default": {},
@@ -28,17 +32,31 @@ VARIANTS = {  # name: AvoidanceSpec overrides (None: no layer)
     "braking 2.8": {"braking": 2.8},
     "teammate margin 0.05": {"teammate_margin": 0.05},
     "braking 2.5, margin 0.05": {"braking": 2.5, "teammate_margin": 0.05},
+    "teammate barrier off": {"teammate_margin": OFF},  # a diagnostic only: which part of the layer costs
+    "teammate braking 2.25": {"teammate_braking": 2.25},
+    "teammate braking 3.0": {"teammate_braking": 3.0},
 }
 ONLY = sys.argv[3].split(",") if len(sys.argv) > 3 else list(VARIANTS)  # a subset, by name
 
 
 class Layered:
+    mates_off = False
+
     def __init__(self, spec):
         self.c, self.spec = ClassicalPursuers(), spec
 
     def act(self, obs, env):
         a = self.c.act(obs, env)
-        avoid_agents(self.spec, obs, a, np.arange(nt))
+        if not self.mates_off:
+            avoid_agents(self.spec, obs, a, np.arange(nt))
+            return a
+        for i in range(nt):  # the kernel on tables without the teammate barrier
+            params, layout = role_tables(self.spec, self.spec.roles[i])
+            params = params.copy()
+            params[P_MATE_MARGIN] = OFF
+            col = np.ascontiguousarray(a[:, i], dtype=np.float64)
+            avoid_rows(obs[:, i], col, params, layout)
+            a[:, i] = col
         return a
 
 
@@ -52,6 +70,9 @@ for name in ONLY:
     over = VARIANTS[name]
     if over is None:
         team = ClassicalPursuers()
+    elif over.get("teammate_margin") == OFF:
+        team = Layered(dataclasses.replace(cfg.spec, avoidance=dataclasses.replace(cfg.spec.avoidance, enabled=True)))
+        team.mates_off = True
     else:
         av = dataclasses.replace(cfg.spec.avoidance, enabled=True, **over)
         team = Layered(dataclasses.replace(cfg.spec, avoidance=av))
