@@ -29,6 +29,7 @@ import logging
 import math
 import threading
 import time
+from pathlib import Path
 
 import cflib.crtp
 from cflib.crazyflie import Crazyflie
@@ -104,6 +105,11 @@ class CflibLink(Link):
         self._radio_quality: float | None = None
         self._arrivals: collections.deque[float] = collections.deque(maxlen=max(2, 1000 // period_ms))
         init_drivers()
+        if rw_cache is not None:
+            # cflib creates a missing cache folder itself, by "exists? else makedirs": links opened in parallel on
+            # a machine that never had the folder (the first `make demo`) raced there and failed with
+            # FileExistsError. Created here first, it exists before any link's cflib looks.
+            Path(rw_cache).mkdir(parents=True, exist_ok=True)
         self._cf = Crazyflie(rw_cache=rw_cache)
         self._cf.packet_sent.add_callback(self._count_sent)
         self._cf.packet_received.add_callback(self._count_received)

@@ -160,3 +160,38 @@ def test_close_is_idempotent_quick_and_a_closed_link_refuses_commands(peer_link)
                  lambda: link.takeoff(0.5, 1.0), lambda: link.land(1.0), link.emergency_stop):
         with pytest.raises(LinkError, match="closed"):
             call()
+
+
+def test_cflib_links_opened_in_parallel_create_a_missing_toc_cache_folder(tmp_path, monkeypatch):
+    """The first ``make demo`` on a machine opened its links in parallel with a TOC cache folder that did not exist
+    yet, and cflib's own "exists? else makedirs" raced: ``[Errno 17] File exists``. Here cflib's check is made
+    slow (50 ms) so that without the folder created beforehand every link would race; all must open."""
+    pytest.importorskip("cflib")
+    import concurrent.futures
+    import os
+
+    from cflib.crazyflie import toccache
+
+    cache = tmp_path / "fresh" / "toc"
+    real_exists = os.path.exists
+
+    def slow_exists(path):
+        if str(path) == str(cache):
+            time.sleep(0.05)
+        return real_exists(path)
+
+    monkeypatch.setattr(toccache.os.path, "exists", slow_exists)
+    n = 3
+    sims = SimSwarm(n, base_port=free_base_port(n, seed=31), seed=31).start()
+    links = []
+    try:
+        with concurrent.futures.ThreadPoolExecutor(n) as ex:
+            futures = [ex.submit(open_link, u, period_ms=PERIOD_MS, rw_cache=str(cache)) for u in sims.uris]
+            for f in futures:
+                links.append(f.result(timeout=60))
+        assert cache.is_dir() and len(links) == n
+        assert all(math.isfinite(link.telemetry().position[0]) for link in links)  # telemetry arrived
+    finally:
+        for link in links:
+            link.close()
+        sims.stop()
