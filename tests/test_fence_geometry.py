@@ -1,6 +1,6 @@
 """The compiled geofence geometry (``groundstation.fence_geometry``) against the numpy code it replaced
-(``fence_reference``: bit for bit) and against shapely (an independent model of the safe set), on random
-fences and points."""
+(``fence_reference``: the same decisions, the same numbers to rounding) and against shapely (an independent model
+of the safe set), on random fences and points."""
 from __future__ import annotations
 
 import math
@@ -21,15 +21,28 @@ unit = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(la
 near = st.floats(-1e-9, 1e-9)  # nudges onto and just off a boundary
 
 
+ROUNDING = 1e-12
+"""[m, m/s] How far a position or velocity of the kernel may be from the reference's: rounding. The kernel's scalar
+sums and numpy's vectorized products (SIMD loops and BLAS, whose paths and last bits differ between releases and
+machines) need not agree to the bit: on a fresh install of 2026-12-03 (numpy 2.4.6, numba 0.68.1) the reference gave
+-1.1e-17 m/s where the kernel gave 0, and clamped points 2.7e-15 m apart. Every decision (a status, a flag, which
+constraint binds) must agree, except at a tie."""
+
+
 def _same(a: np.ndarray, b: np.ndarray) -> None:
-    np.testing.assert_array_equal(a, b)  # to the bit: the same operations in the same order
+    np.testing.assert_array_equal(a, b)  # unchanged inputs: to the bit
 
 
 def _agree(fence: FenceConfig, p: object, got: object, want: object) -> None:
-    """``got`` is ``want`` to the bit, unless ``p`` is a tie (``_tie``), where only clamped points must agree to
-    rounding."""
-    if isinstance(got, np.ndarray) and isinstance(want, np.ndarray) and np.array_equal(got, want) or \
-            not isinstance(got, np.ndarray) and got == want:
+    """``got`` is ``want``: a status or a flag exactly, a position or a velocity to ``ROUNDING``; unless ``p`` is a
+    tie (``_tie``), where a decision may go either way."""
+    if isinstance(got, np.ndarray) and isinstance(want, np.ndarray):
+        if np.array_equal(got, want):
+            return
+        if got.shape == want.shape and np.allclose(got, want, rtol=0.0, atol=ROUNDING):
+            event("differs within rounding")
+            return
+    elif got == want:
         return
     assert _tie(fence, p), (p, got, want)
     event("differs, within rounding of a threshold")
@@ -107,7 +120,8 @@ def test_velocity_limits_equal_the_reference(fence: FenceConfig, p: tuple, v: tu
 def test_free_distance_and_paths_equal_the_reference(fence: FenceConfig, p: tuple, u: tuple, target: tuple) -> None:
     s = gsfence.clamp_position(fence, p)
     uu = np.array(u) / np.linalg.norm(u)
-    assert safety.free_distance(fence, s, uu) == ref.free_distance(fence, s, uu)
+    got, want = safety.free_distance(fence, s, uu), ref.free_distance(fence, s, uu)
+    assert got == want or abs(got - want) <= ROUNDING * max(1.0, abs(want)), (got, want)
     _agree(fence, p, safety.clamp_path(fence, p, target), ref.clamp_path(fence, p, target))
     for d, dt, a, c in ((0.3, 0.1, 2.0, 2.0), (math.inf, 0.1, 2.0, 0.0), (-1.0, 0.1, 2.0, 2.0)):
         assert safety.max_safe_speed(d, dt, a, c) == ref.max_safe_speed(d, dt, a, c)
