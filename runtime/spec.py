@@ -233,7 +233,7 @@ class AvoidanceSpec:
     """Gap [m] to an obstacle's or a wall's surface where the allowed approach speed reaches zero."""
     teammate_margin: float = 0.1
     """Gap [m] between two teammates' bodies where the allowed approach speed reaches zero."""
-    teammate_braking: float = 0.0
+    teammate_braking: float = field(default=0.0, metadata={"since": True})
     """Relative deceleration [m/s^2] the teammate barrier plans with: toward a teammate a drone's approach speed
     is at most half the barrier's limit at this deceleration (the teammate, flying the same layer, takes the other
     half), so each of two teammates closing in brakes at half of it. 0 (the default): ``braking``, the layer as it
@@ -334,14 +334,11 @@ class SwarmSpec:
 
     # -- (de)serialisation ---------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        """Every table as plain values; ``avoidance`` only when it differs from its default (off), and its
-        ``teammate_braking`` only when set, so that specs without the layer, or without that field, serialise and
-        hash exactly as before the table, or the field, existed."""
-        out = {f.name: dataclasses.asdict(getattr(self, f.name)) for f in dataclasses.fields(self)
-               if f.init and not (f.name == "avoidance" and self.avoidance == AvoidanceSpec())}
-        if "avoidance" in out and not self.avoidance.teammate_braking:
-            del out["avoidance"]["teammate_braking"]
-        return out
+        """Every table as plain values; ``avoidance`` only when it differs from its default (off), and a field
+        added later (``metadata={"since": True}``) only when it differs from its default, so that specs without the
+        layer, or without such a field, serialise and hash exactly as before the table, or the field, existed."""
+        return {f.name: _table_dict(getattr(self, f.name)) for f in dataclasses.fields(self)
+                if f.init and not (f.name == "avoidance" and self.avoidance == AvoidanceSpec())}
 
     @property
     def hash(self) -> str:
@@ -460,6 +457,16 @@ class ObsLayout:
 @functools.lru_cache(maxsize=64)
 def _layout(spec: SwarmSpec, role: Role) -> ObsLayout:
     return ObsLayout.for_role(spec, role)
+
+
+def _table_dict(table: Any) -> dict[str, Any]:
+    """A spec table as plain values, without the fields added later (``metadata={"since": True}``) that hold their
+    default: a spec that does not set them serialises, and hashes, as before they existed."""
+    out = dataclasses.asdict(table)
+    for f in dataclasses.fields(table):
+        if f.metadata.get("since") and getattr(table, f.name) == f.default:
+            del out[f.name]
+    return out
 
 
 def _positive(obj: Any, name: str) -> None:

@@ -6,8 +6,7 @@ per episode.
     .venv/bin/python results/issue13/classical_layer.py [CONFIG] [EPISODES]     (configs/role_based.toml, 100)
 """
 import sys
-import numpy as np
-from runtime.avoidance import avoid_agents
+from _layered import LayeredClassical
 from training.baselines import ClassicalPursuers, TeamPolicy, FleeingEvaders
 from training.config import ExperimentConfig
 from training.evader_suite import make_suite_evader, SUITE
@@ -15,18 +14,10 @@ from training.evaluate import evaluate
 
 cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "configs/role_based.toml")
 eps = int(sys.argv[2]) if len(sys.argv) > 2 else 100
-nt = cfg.spec.team.n_team
-
-class Layered:
-    def __init__(self): self.c = ClassicalPursuers()
-    def act(self, obs, env):
-        a = self.c.act(obs, env)
-        avoid_agents(cfg.spec, obs, a, np.arange(nt))
-        return a
 
 for kind in ["scripted"] + list(SUITE):
     row = []
-    for name, team in (("classical", ClassicalPursuers()), ("classical+layer", Layered())):
+    for name, team in (("classical", ClassicalPursuers()), ("classical+layer", LayeredClassical(cfg.spec))):
         ev = FleeingEvaders() if kind == "scripted" else make_suite_evader(kind, 0)
         m = evaluate(cfg, TeamPolicy(team, ev), eps, seed=0, progress=False)
         row.append(f"{name} {m['mean_min_dist']:.3f}/{m['tracking_rate']:.3f} cap {m['captures_per_episode']:.2f} tc {m['team_contacts_per_episode']:.2f}")

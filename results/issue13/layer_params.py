@@ -1,8 +1,8 @@
 """What the avoidance layer's parameters cost a team that pursues like the classical one: the classical team flown
 through the layer (runtime.avoidance) with its default parameters, with a less conservative barrier, with the
 teammate barrier planned at the pair's relative deceleration (teammate_braking) and, as a diagnostic, without the
-teammate barrier, against each kind of the held-out suite (the same episodes: evaluation seed 0). Min distance [m] / tracking, captures and
-team contacts per episode, and the suite mean.
+teammate barrier, against each kind of the held-out suite (the same episodes: evaluation seed 0). Min distance [m] /
+tracking, captures and team contacts per episode, and the suite mean.
 
     .venv/bin/python results/issue13/layer_params.py [CONFIG] [EPISODES] [VARIANT,...]
                                                         (configs/role_based.toml, 100, every variant)
@@ -10,9 +10,8 @@ team contacts per episode, and the suite mean.
 import dataclasses
 import sys
 
-import numpy as np
-
-from runtime.avoidance import P_MATE_MARGIN, avoid_agents, avoid_rows, role_tables
+from _layered import LayeredClassical
+from runtime.avoidance import P_MATE_MARGIN
 from training.baselines import ClassicalPursuers, TeamPolicy
 from training.config import ExperimentConfig
 from training.evader_suite import SUITE, make_suite_evader
@@ -20,10 +19,16 @@ from training.evaluate import evaluate, mean_of
 
 cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "configs/role_based.toml")
 eps = int(sys.argv[2]) if len(sys.argv) > 2 else 100
-nt = cfg.spec.team.n_team
-OFF = -100.0
-"""A teammate margin no spec accepts (it must be >= 0), set in the kernel's tables only: the teammate half-planes
-then allow more than any speed, and the layer keeps only its walls, obstacles and reachability."""
+
+
+def without_teammates(params, layout):
+    """The kernel's tables with a teammate margin no spec accepts (it must be >= 0): the teammate half-planes then
+    allow more than any speed, and the layer keeps only its walls, obstacles and reachability."""
+    params = params.copy()
+    params[P_MATE_MARGIN] = -100.0
+    return params, layout
+
+
 VARIANTS = {  # name: AvoidanceSpec overrides (None: no layer)
     "no layer": None,
     "default": {},
@@ -32,32 +37,12 @@ VARIANTS = {  # name: AvoidanceSpec overrides (None: no layer)
     "braking 2.8": {"braking": 2.8},
     "teammate margin 0.05": {"teammate_margin": 0.05},
     "braking 2.5, margin 0.05": {"braking": 2.5, "teammate_margin": 0.05},
-    "teammate barrier off": {"teammate_margin": OFF},  # a diagnostic only: which part of the layer costs
+    "teammate barrier off": {},  # with DIAGNOSTICS' tables
     "teammate braking 2.25": {"teammate_braking": 2.25},
     "teammate braking 3.0": {"teammate_braking": 3.0},
 }
+DIAGNOSTICS = {"teammate barrier off": without_teammates}  # which part of the layer costs
 ONLY = sys.argv[3].split(",") if len(sys.argv) > 3 else list(VARIANTS)  # a subset, by name
-
-
-class Layered:
-    mates_off = False
-
-    def __init__(self, spec):
-        self.c, self.spec = ClassicalPursuers(), spec
-
-    def act(self, obs, env):
-        a = self.c.act(obs, env)
-        if not self.mates_off:
-            avoid_agents(self.spec, obs, a, np.arange(nt))
-            return a
-        for i in range(nt):  # the kernel on tables without the teammate barrier
-            params, layout = role_tables(self.spec, self.spec.roles[i])
-            params = params.copy()
-            params[P_MATE_MARGIN] = OFF
-            col = np.ascontiguousarray(a[:, i], dtype=np.float64)
-            avoid_rows(obs[:, i], col, params, layout)
-            a[:, i] = col
-        return a
 
 
 def fmt(m):
@@ -70,12 +55,9 @@ for name in ONLY:
     over = VARIANTS[name]
     if over is None:
         team = ClassicalPursuers()
-    elif over.get("teammate_margin") == OFF:
-        team = Layered(dataclasses.replace(cfg.spec, avoidance=dataclasses.replace(cfg.spec.avoidance, enabled=True)))
-        team.mates_off = True
     else:
         av = dataclasses.replace(cfg.spec.avoidance, enabled=True, **over)
-        team = Layered(dataclasses.replace(cfg.spec, avoidance=av))
+        team = LayeredClassical(dataclasses.replace(cfg.spec, avoidance=av), tables=DIAGNOSTICS.get(name))
     per = {kind: evaluate(cfg, TeamPolicy(team, make_suite_evader(kind, 0)), eps, seed=0, progress=False)
            for kind in SUITE}
     print(f"{name:26s} suite {fmt(mean_of(list(per.values())))}   "

@@ -7,9 +7,7 @@ that cloned its teacher exactly would get; min distance [m] / tracking and team 
 """
 import sys
 
-import numpy as np
-
-from runtime.avoidance import avoid_agents
+from _layered import LayeredClassical
 from training.baselines import ClassicalPursuers, TeamPolicy
 from training.config import ExperimentConfig
 from training.evader_suite import SUITE, make_suite_evader
@@ -17,24 +15,11 @@ from training.evaluate import evaluate, mean_of
 
 cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "configs/role_based.toml")
 eps = int(sys.argv[2]) if len(sys.argv) > 2 else 100
-nt = cfg.spec.team.n_team
-
-
-class Layered:
-    def __init__(self, push: float) -> None:
-        self.c = ClassicalPursuers()
-        self.c.separation_gain = push
-
-    def act(self, obs, env):
-        a = self.c.act(obs, env)
-        avoid_agents(cfg.spec, obs, a, np.arange(nt))
-        return a
-
 
 print(f"{cfg.name}: avoidance {cfg.spec.avoidance}")
 for push in sorted({cfg.train.teacher_separation_gain, ClassicalPursuers.separation_gain}):
-    per = {kind: evaluate(cfg, TeamPolicy(Layered(push), make_suite_evader(kind, 0)), eps, seed=0, progress=False)
-           for kind in SUITE}
+    per = {kind: evaluate(cfg, TeamPolicy(LayeredClassical(cfg.spec, push), make_suite_evader(kind, 0)), eps, seed=0,
+                          progress=False) for kind in SUITE}
     m = mean_of(list(per.values()))
     print(f"push {push:g}: suite {m['mean_min_dist']:.3f}/{m['tracking_rate']:.3f} tc "
           f"{m['team_contacts_per_episode']:.2f}   "

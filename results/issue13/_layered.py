@@ -1,0 +1,35 @@
+"""The classical team flown through the learned actors' avoidance layer, for the issue-13 scripts beside this file
+(classical_layer.py, layer_params.py, teacher_layer.py)."""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+from runtime.avoidance import avoid_agents, avoid_rows, role_tables
+from runtime.spec import SwarmSpec
+from training.baselines import ClassicalPursuers
+
+
+class LayeredClassical:
+    """``ClassicalPursuers`` (teammate push ``separation_gain``; None: its own) with every team action through the
+    avoidance layer of ``spec``. ``tables``: a function editing the kernel's ``(params, layout)`` before each use,
+    for a diagnostic no spec can express."""
+
+    def __init__(self, spec: SwarmSpec, separation_gain: float | None = None,
+                 tables: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+        self.c = ClassicalPursuers()
+        if separation_gain is not None:
+            self.c.separation_gain = separation_gain
+        self.spec, self.tables, self.team = spec, tables, np.arange(spec.team.n_team)
+
+    def act(self, obs: np.ndarray, env: Any) -> np.ndarray:
+        a = self.c.act(obs, env)
+        if self.tables is None:
+            return avoid_agents(self.spec, obs, a, self.team)
+        for i in self.team:
+            params, layout = self.tables(*role_tables(self.spec, self.spec.roles[i]))
+            col = np.ascontiguousarray(a[:, i], dtype=np.float64)
+            avoid_rows(obs[:, i], col, params, layout)
+            a[:, i] = col
+        return a
