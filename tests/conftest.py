@@ -9,10 +9,9 @@ from hypothesis import settings
 
 # The property tests draw the same examples on every run (``derandomize``; numpy, numba and hypothesis are pinned in
 # constraints.txt), so that the suite passes or fails the same way each time. ``HYPOTHESIS_PROFILE=search`` draws new
-# ones (with ``--hypothesis-seed=N``, the same again): a search for counterexamples, not a CI run. Found by such
-# searches on 2026-12-03 and not yet fixed: tests/test_separation.py's QP 0.4 % costlier than the pairwise fallback
-# for drones at (0, 0), (-1, 1), (-1, -1) at rest wishing (0, -1.5) and (3, 3); tests/test_fence_geometry.py's EQUAL
-# docstring.
+# ones (with ``--hypothesis-seed=N``, the same again): a search for counterexamples, not a CI run. What such
+# searches found is a test of its own (tests/test_separation.py: the QP measured from a wish it was never asked
+# for; tests/test_fence_geometry.py: the EQUAL docstring).
 settings.register_profile("deterministic", derandomize=True)
 settings.register_profile("search", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))

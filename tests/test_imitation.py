@@ -132,3 +132,49 @@ def test_the_paper_configs_have_no_teacher():
         tc = ExperimentConfig.from_toml(root / "configs" / f"{name}.toml").train
         assert tc.teacher == "none" and tc.imitation_steps == 0 and tc.imitation_weight == 0.0, name
     assert TrainConfig().teacher == "none"
+
+
+def test_imitation_near_weight_weighs_the_rows_next_to_a_known_target():
+    cfg = _cfg(teacher="classical", imitation_steps=100, imitation_near_weight=4.0, imitation_near_radius=0.5)
+    spec = dataclasses.replace(cfg.spec, team=dataclasses.replace(cfg.spec.team, n_evaders=2))
+    tc = cfg.train
+    agent = MADDPG(spec, tc)
+    k, n, d = 6, spec.n_agents, spec.max_obs_dim
+    layout = spec.layout(spec.roles[0])
+    f = layout["targets"]
+    assert f.rows == 2
+    dx, dy, known = (f.start + f.columns.index(c) for c in ("dx", "dy", "known"))
+    obs = torch.zeros(k, n, d)
+    obs[:, :, dx] = torch.tensor([0.3, 0.3, 0.6, -0.2, 0.0, 3.0]).view(k, 1)
+    obs[:, :, dy] = torch.tensor([0.0, 0.45, 0.0, 0.2, 0.0, 0.0]).view(k, 1)
+    obs[:, :, known] = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0, 1.0]).view(k, 1)
+    second = f.start + len(f.columns)  # the second target row: near in row 5 only
+    obs[5, :, second + f.columns.index("dx")] = 0.1
+    obs[5, :, second + f.columns.index("known")] = 1.0
+    w = agent.near_weights(obs)
+    team = torch.tensor([4.0, 1.0, 1.0, 4.0, 1.0, 4.0])  # 0.3; 0.54 out; 0.6 out; 0.28; unknown; the 2nd row
+    for i, role in enumerate(spec.roles):
+        want = team if "targets" in spec.layout(role).names() else torch.ones(k)
+        assert torch.equal(w[i], want), (i, role, w[i])
+    # the loss is the weighted mean over the rows that have a teacher action
+    mu = torch.zeros(n, k, 2)
+    teach = torch.rand(k, n, 2, generator=torch.Generator().manual_seed(1))
+    teach[0, :] = float("nan")
+    sq = teach.transpose(0, 1).pow(2).sum(-1)
+    has = torch.isfinite(sq)
+    ww = torch.where(has, w, 0.0)
+    want = (torch.nan_to_num(sq) * ww).sum(1) / ww.sum(1)
+    assert torch.allclose(agent._bc_loss(mu, teach, obs), want)
+    plain = MADDPG(spec, dataclasses.replace(tc, imitation_near_weight=1.0))
+    assert plain._near is None
+    assert torch.allclose(plain._bc_loss(mu, teach, obs), torch.nan_to_num(sq).sum(1) / has.sum(1))
+
+
+@pytest.mark.parametrize("train, field", [
+    ({"imitation_near_weight": 0.0}, "train.imitation_near_weight"),
+    ({"imitation_near_weight": float("inf")}, "train.imitation_near_weight"),
+    ({"imitation_near_radius": -0.5}, "train.imitation_near_radius"),
+])
+def test_bad_near_weights_name_the_field(train, field):
+    with pytest.raises(SpecError, match=field.replace(".", r"\.")):
+        _cfg(teacher="classical", **train)

@@ -226,6 +226,12 @@ class TrainConfig:
     than the critics need."""
     imitation_batch: int = 1024
     """Transitions per extra behaviour-cloning step (``imitation_updates``)."""
+    imitation_near_weight: float = 1.0
+    """Weight of a behaviour-cloning row whose agent sees a known target within ``imitation_near_radius``,
+    relative to 1 for every other row (a weighted mean over each agent's rows): the clone's error is largest
+    next to a target (``results/issue13/clone_error.py``), where few of the DAgger rows are. 1: unweighted."""
+    imitation_near_radius: float = 0.5
+    """[m] How near a known target makes a row "near" for ``imitation_near_weight``."""
     es_iterations: int = 0
     """After the MADDPG steps: iterations of evolution strategies on the pursuer team's actors, scored on the
     evaluation's metrics against the training pool and the frozen co-trained evaders (``training.es``); 0: none.
@@ -344,6 +350,12 @@ class TrainConfig:
         if self.es_iterations and not self.share_params:
             raise SpecError("train.es_iterations: evolution strategies fly one actor per role: set "
                             "train.share_params = true (or train.es_iterations = 0)")
+        if not (math.isfinite(self.imitation_near_weight) and self.imitation_near_weight > 0):
+            raise SpecError(f"train.imitation_near_weight: must be a finite number > 0 (1: unweighted), got "
+                            f"{self.imitation_near_weight!r}")
+        if not (math.isfinite(self.imitation_near_radius) and self.imitation_near_radius > 0):
+            raise SpecError(f"train.imitation_near_radius: must be a finite distance > 0 [m], got "
+                            f"{self.imitation_near_radius!r}")
         if self.imitation_batch < 1:
             raise SpecError(f"train.imitation_batch: must be >= 1, got {self.imitation_batch!r}")
         if self.imitation_updates and self.imitation_batch > self.buffer_size:

@@ -269,6 +269,7 @@ class MADDPG:
             offset = [c in ("dx", "dy") for f in layout.fields for _ in range(f.rows) for c in f.columns]
             gain[i, 0, :len(offset)][torch.tensor(offset)] = cfg.obs_offset_gain
         self._obs_lo, self._obs_span = lo.to(dev), (hi - lo).to(dev)
+        self._near = _near_columns(spec, dev) if cfg.imitation_near_weight != 1.0 else None
         self._in_scale = self._in_shift = None
         if cfg.obs_scaling:  # x -> gain (2 (x - lo) / span - 1); padding columns (span 0) stay 0
             span = hi - lo
@@ -384,7 +385,7 @@ class MADDPG:
         extra: dict[str, float] = {}
         bc_n = None
         if teach is not None and (imitation or w_bc > 0):
-            bc_n = self._bc_loss(mu, teach)
+            bc_n = self._bc_loss(mu, teach, obs)
             extra["imitation_mse"] = float((bc_n.detach() * self.learn_mask).sum() / self.learn_mask.sum())
         if imitation:
             if bc_n is None:
@@ -417,21 +418,35 @@ class MADDPG:
         return {**extra, "actor_loss": float((actor_loss_n.detach() * w).sum()),
                 "actor_grad_norm": float(actor_norm.mean())}
 
-    @staticmethod
-    def _bc_loss(mu: torch.Tensor, teach: torch.Tensor) -> torch.Tensor:
+    def _bc_loss(self, mu: torch.Tensor, teach: torch.Tensor, obs: torch.Tensor | None = None) -> torch.Tensor:
         """[N] mean squared distance of actions ``mu`` [N, K, 2] to the teacher's ``teach`` [K, N, 2] over the rows
-        that have one (NaN: none)."""
+        that have one (NaN: none); with ``train.imitation_near_weight`` and the raw observations ``obs`` [K, N, D],
+        a weighted mean in which the rows near a known target weigh that much more."""
         t = teach.transpose(0, 1)  # [N, K, 2]
         has = torch.isfinite(t).all(-1)  # [N, K]
         sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros((), device=mu.device))
-        return sq.sum(1) / has.sum(1).clamp(min=1)
+        if self._near is None or obs is None:
+            return sq.sum(1) / has.sum(1).clamp(min=1)
+        w = has * self.near_weights(obs)
+        return (sq * w).sum(1) / w.sum(1).clamp(min=1e-12)
+
+    def near_weights(self, obs: torch.Tensor) -> torch.Tensor:
+        """[N, K] ``train.imitation_near_weight`` where agent n's raw observation ``obs`` [K, N, D] shows a known
+        target within ``train.imitation_near_radius``, 1 elsewhere (and for agents that observe no targets)."""
+        cols, sees = self._near
+        o = obs.transpose(0, 1)  # [N, K, D]
+        v = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1, -1).flatten(2))  # [N, K, T*3]
+        v = v.view(o.shape[0], o.shape[1], -1, 3)
+        r = self.cfg.imitation_near_radius
+        near = ((v[..., 0].square() + v[..., 1].square() < r * r) & (v[..., 2] > 0.5)).any(-1) & sees.view(-1, 1)
+        return torch.where(near, self.cfg.imitation_near_weight, 1.0)
 
     def clone_step(self, obs: torch.Tensor, teach: torch.Tensor) -> float:
         """One behaviour-cloning step of every actor (no critic, no target update) on observations ``[K, N, D]``
         and the teacher's actions ``[K, N, 2]``; returns the mean squared distance to the teacher before it."""
         cfg = self.cfg
         pre = self.actors.forward_pre(self.actor_input(obs.transpose(0, 1)), self._actor_ix)  # [N, K, 2]
-        bc_n = self._bc_loss(torch.tanh(pre), teach)
+        bc_n = self._bc_loss(torch.tanh(pre), teach, obs)
         loss_n = bc_n + cfg.action_reg * pre.pow(2).mean((1, 2))
         self.actor_opt.zero_grad(set_to_none=True)
         (loss_n * self._weight).sum().backward()
@@ -513,6 +528,30 @@ class MADDPG:
             if name in sd:
                 getattr(self, name).set_state(sd[name].cpu() if self.device.type == "cpu" else sd[name])
         self._last_actor = dict(sd.get("last_actor", {}))
+
+
+def _near_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """For ``train.imitation_near_weight``: per agent, the observation columns (dx, dy, known) of each target row
+    [N, T, 3], and whether the agent observes targets at all [N] (evaders do not: their rows get 0, unused)."""
+    n = spec.n_agents
+    per: list[list[list[int]]] = []
+    for role in spec.roles:
+        layout = spec.layout(role)
+        if "targets" in layout.names():
+            f = layout["targets"]
+            c = [f.columns.index(x) for x in ("dx", "dy", "known")]
+            per.append([[f.start + k * len(f.columns) + j for j in c] for k in range(f.rows)])
+        else:
+            per.append([])
+    t = max((len(p) for p in per), default=0) or 1
+    cols = torch.zeros(n, t, 3, dtype=torch.long)
+    for i, p in enumerate(per):
+        for k, row in enumerate(p):
+            cols[i, k] = torch.tensor(row)
+        for k in range(len(p), t):  # a role with fewer target rows repeats its first (or reads column 0, unused)
+            cols[i, k] = cols[i, 0]
+    sees = torch.tensor([bool(p) for p in per])
+    return cols.to(device), sees.to(device)
 
 
 def _index(rows: Sequence[int], n_models: int, device: torch.device) -> torch.Tensor | None:

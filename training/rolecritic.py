@@ -138,7 +138,7 @@ class RoleCriticMADDPG(MADDPG):
         extra: dict[str, float] = {}
         bc_n = None
         if teach is not None and (imitation or w_bc > 0):
-            bc_n = self._bc_loss(mu, teach)
+            bc_n = self._bc_loss(mu, teach, obs)
             extra["imitation_mse"] = float((bc_n.detach() * self.learn_mask).sum() / self.learn_mask.sum())
         if imitation:
             if bc_n is None:
