@@ -18,9 +18,9 @@ from groundstation.safety import FenceConfig, FenceStatus, KeepOut
 
 EQUAL = settings(max_examples=300, deadline=None)
 """Random seeds (``HYPOTHESIS_PROFILE=search``, with ``--hypothesis-seed=N`` to repeat one; the suite's own runs are
-derandomized, tests/conftest.py) still find kernel and reference apart at degenerate ties that ``_tie`` and
-``_as_near`` do not yet recognise (2 of 24 seeds on 2026-12-03: a free distance from a clamped point on a circle, a
-velocity limit within 2 mm of a keep-out's centre)."""
+derandomized, tests/conftest.py) found kernel and reference apart at degenerate ties, each now recognised: a point on
+a threshold (``_tie``), several nearest safe points (``_as_near``; a velocity limit from outside heads for either),
+a ray along a keep-out's tangent (``_grazes``)."""
 unit = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda u: np.linalg.norm(u) > 1e-3)
 near = st.floats(-1e-9, 1e-9)  # nudges onto and just off a boundary
 
@@ -90,6 +90,25 @@ def _tie(fence: FenceConfig, p: object) -> bool:
     return bool(np.any(np.abs(np.concatenate([gaps, gaps + gsfence.TOL, gaps - gsfence.TOL])) <= 1e-12))
 
 
+def _grazes(fence: FenceConfig, s: np.ndarray, u: np.ndarray) -> list[float]:
+    """Distances along the unit ray ``s + t u`` (t >= 0) to where it touches a keep-out circle (its radius or its
+    grown radius) within rounding of a tangent: there an intersection's discriminant is within rounding of zero, and
+    kernel and reference may see a touch or a miss (found by hypothesis: a ray along x = 0.75 past a circle of
+    radius 0.75 at x = 0)."""
+    g = gsfence.geometry(fence)
+    h = np.array(u[:2], dtype=float)
+    hn = float(np.linalg.norm(h))
+    if hn < 1e-9:
+        return []
+    out = []
+    for c, radii in zip(g.centres, zip(g.radii, g.grown)):
+        along = float((c - s[:2]) @ h) / hn  # horizontal distance to the foot of the perpendicular
+        d = c - s[:2]
+        perp = abs(float(h[0] * d[1] - h[1] * d[0])) / hn
+        out += [along / hn for r in radii if along >= 0 and abs(perp - r) <= 1e-9]
+    return out
+
+
 def _on_boundaries(fence: FenceConfig, draw_t: float, nudge: tuple[float, float, float]) -> np.ndarray:
     """A point on the safe polygon's edge, a grown keep-out circle or the fence polygon, nudged by ``nudge``."""
     g = gsfence.geometry(fence)
@@ -138,7 +157,16 @@ def test_points_on_the_boundaries_are_classified_and_clamped_as_the_reference(fe
 @given(fence=fences(), p=st.one_of(point, sane_point), v=st.one_of(point, st.tuples(*[st.floats(-3, 3)] * 3)),
        dt=st.one_of(st.floats(0.0, 0.5), st.sampled_from([math.nan, -0.1, math.inf, 0.0])))
 def test_velocity_limits_equal_the_reference(fence: FenceConfig, p: tuple, v: tuple, dt: float) -> None:
-    _agree(fence, p, safety.limit_velocity(fence, p, v, dt), ref.limit_velocity(fence, p, v, dt))
+    got, want = safety.limit_velocity(fence, p, v, dt), ref.limit_velocity(fence, p, v, dt)
+    near = gsfence.clamp_position(fence, p), ref.clamp_position(fence, p)
+    if _as_near(fence, p, *near):
+        # outside the safe set with several nearest points: each side keeps the part of v that heads for its own
+        a = gsfence.as_point(p)
+        for w, q in zip((got, want), near):
+            assert np.linalg.norm(w) <= fence.max_speed + 1e-12 and w @ (q - a) >= -ROUNDING, (w, q)
+        event("outside, another nearest point to head for")
+        return
+    _agree(fence, p, got, want)
 
 
 @EQUAL
@@ -147,7 +175,10 @@ def test_free_distance_and_paths_equal_the_reference(fence: FenceConfig, p: tupl
     s = gsfence.clamp_position(fence, p)
     uu = np.array(u) / np.linalg.norm(u)
     got, want = safety.free_distance(fence, s, uu), ref.free_distance(fence, s, uu)
-    assert got == want or abs(got - want) <= ROUNDING * max(1.0, abs(want)), (got, want)
+    if not (got == want or abs(got - want) <= ROUNDING * max(1.0, abs(want))):
+        # a ray within rounding of a keep-out's tangent: one side stops at the tangent point, the other flies past
+        assert any(abs(min(got, want) - t) <= 1e-6 for t in _grazes(fence, s, uu)), (got, want)
+        event("a ray that grazes a keep-out")
     got, want = safety.clamp_path(fence, p, target), ref.clamp_path(fence, p, target)
     ties = [(fence, x, gsfence.clamp_position(fence, x), ref.clamp_position(fence, x)) for x in (target, p)]
     if any(_as_near(*t) for t in ties):  # the path starts or ends at another nearest point: its own path
@@ -198,7 +229,8 @@ def test_the_clamp_is_shapelys_nearest_safe_point(fence: FenceConfig, p: tuple) 
     assert region.distance(Point(q[:2])) <= 1e-9 + slack  # in the set
     want = region.distance(Point(p[:2]))  # to shapely's (polygonal, slightly larger) set
     got = math.hypot(q[0] - p[0], q[1] - p[1])
-    assert want - 1e-9 <= got <= want + slack, (got, want)
+    # a point within TOL of every edge it is outside of is in the set as it stands: at a corner sqrt(2) TOL away
+    assert want - 2 * gsfence.TOL <= got <= want + slack, (got, want)
 
 
 @settings(max_examples=150, deadline=None)
