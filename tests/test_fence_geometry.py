@@ -20,7 +20,8 @@ EQUAL = settings(max_examples=300, deadline=None)
 """Random seeds (``HYPOTHESIS_PROFILE=search``, with ``--hypothesis-seed=N`` to repeat one; the suite's own runs are
 derandomized, tests/conftest.py) found kernel and reference apart at degenerate ties, each now recognised: a point on
 a threshold (``_tie``), several nearest safe points (``_as_near``; a velocity limit from outside heads for either),
-a ray along a keep-out's tangent (``_grazes``)."""
+a ray along a keep-out's tangent (``_grazes``), a ray at a grazing angle from a point within rounding of a
+boundary."""
 unit = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda u: np.linalg.norm(u) > 1e-3)
 near = st.floats(-1e-9, 1e-9)  # nudges onto and just off a boundary
 
@@ -176,9 +177,15 @@ def test_free_distance_and_paths_equal_the_reference(fence: FenceConfig, p: tupl
     uu = np.array(u) / np.linalg.norm(u)
     got, want = safety.free_distance(fence, s, uu), ref.free_distance(fence, s, uu)
     if not (got == want or abs(got - want) <= ROUNDING * max(1.0, abs(want))):
-        # a ray within rounding of a keep-out's tangent: one side stops at the tangent point, the other flies past
-        assert any(abs(min(got, want) - t) <= 1e-6 for t in _grazes(fence, s, uu)), (got, want)
-        event("a ray that grazes a keep-out")
+        if _tie(fence, s):
+            # from a point within rounding of a boundary, a ray that crosses it at a grazing angle leaves within
+            # rounding / its horizontal component (found: u = (1.4e-10, 0, 1) from a polygon's edge, 1.5 and 2.9 um)
+            assert abs(got - want) <= ROUNDING / max(math.hypot(uu[0], uu[1]), 1e-12), (got, want)
+            event("a ray from a point on a boundary, within rounding")
+        else:
+            # a ray within rounding of a keep-out's tangent: one side stops at the tangent point, the other flies on
+            assert any(abs(min(got, want) - t) <= 1e-6 for t in _grazes(fence, s, uu)), (got, want)
+            event("a ray that grazes a keep-out")
     got, want = safety.clamp_path(fence, p, target), ref.clamp_path(fence, p, target)
     ties = [(fence, x, gsfence.clamp_position(fence, x), ref.clamp_position(fence, x)) for x in (target, p)]
     if any(_as_near(*t) for t in ties):  # the path starts or ends at another nearest point: its own path
