@@ -11,7 +11,8 @@ run.
 - ``global``: ``train.critic = "global"`` (one critic per agent on the compact global state);
 - ``role``, ``role_share``: ``train.critic = "role"`` (one critic per role with a head per agent,
   ``training.rolecritic``), without and with ``train.share_params``;
-- ``shipped``: the learner settings of configs/role_based.toml.
+- ``shipped``: the learner settings of configs/role_based.toml (64-64 role critics since issue 13's eighth attempt);
+- ``shipped_c128``: the same with the 128-128 critics it shipped with until then.
 
 Target (issue 13): a fast option >= 3x ``before``.
 
@@ -36,7 +37,9 @@ VARIANTS = {
     "role": {"critic": "role"},
     "role_share": {"critic": "role", "share_params": True},
     "shipped": None,
+    "shipped_c128": None,
 }
+SHIPPED = {"shipped": {}, "shipped_c128": {"critic_hidden": (128, 128)}}
 
 
 # ---- the learner's helpers as they were when issue 13 was filed (the `before` row) -------------------------
@@ -88,7 +91,7 @@ def test_update(benchmark, variant, one_thread, monkeypatch):
         monkeypatch.setattr(networks.BatchedMLP, "forward_pre", _old_forward_pre)
     if VARIANTS[variant] is None:
         shipped = ExperimentConfig.from_toml(ROOT / "configs" / "role_based.toml")
-        spec, tc = shipped.spec, dataclasses.replace(shipped.train, threads=1)
+        spec, tc = shipped.spec, dataclasses.replace(shipped.train, threads=1, **SHIPPED[variant])
     else:
         cfg = ExperimentConfig.from_dict({"name": "bench", "spec": {"team": {"n_pursuers": 5, "n_scouts": 5,
                                                                              "n_evaders": 2}}})
