@@ -243,6 +243,10 @@ def test_the_es_fitness_is_the_weighted_sum_of_the_episode_metrics_captures_incl
     no_captures = dataclasses.replace(cfg.train, es_capture_weight=0.0)
     es.tc = no_captures
     assert es.fitness(recs) == pytest.approx((one - 0.05 * 6 + two) / 2)
+    es.tc = cfg.train  # each role's part (train.es_role_fitness): the pursuers' without coverage, the scouts' coverage
+    from runtime.spec import Role
+    np.testing.assert_allclose(es.episode_fitness(recs, Role.PURSUER), [one - 0.1 * 0.8, two - 0.1 * 0.6])
+    np.testing.assert_allclose(es.episode_fitness(recs, Role.SCOUT), [0.1 * 0.8 - 0.2 * 2, 0.1 * 0.6])
 
 
 def _rec(min_dist: float):
@@ -289,3 +293,44 @@ def test_es_pool_limits_the_scripted_opponents_es_meets(monkeypatch):
         made.clear()
         row = team.step()
         assert np.isfinite(row["fitness"]) and sorted(made[-1]) == sorted(want)
+
+
+def test_es_role_fitness_moves_each_role_by_its_own_terms_only(monkeypatch):
+    """Rollouts faked so that the pursuers' weights set the distance and the scouts' the coverage: with
+    ``es_role_fitness`` the pursuers' step does not depend on the coverage the members reached, nor the scouts'
+    on the distance; with the team's one fitness, it does."""
+    from runtime.metrics import EpisodeRecord
+    from training.es import TeamES
+    spec = {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 1}}
+    rng = np.random.default_rng(3)
+
+    def step(role_fitness: bool, cover_sign: float, dist_sign: float) -> tuple[np.ndarray, np.ndarray]:
+        cfg = _cfg(spec, share_params=True, es_iterations=1, es_population=6, es_episodes=1,
+                   es_coverage_weight=1.0, es_role_fitness=role_fitness)
+        team = TeamES(cfg.spec, cfg.rewards, MADDPG(cfg.spec, cfg.train).to_actors(), cfg.train, seed=0)
+        sp = team.sizes[0]
+        dp, ds = dirs.setdefault("p", rng.standard_normal(sp)), dirs.setdefault("s", rng.standard_normal(team.sizes[1]))
+
+        def fake(thetas, episodes, seed):
+            d = thetas - team.theta
+            return [[EpisodeRecord(min_dist=0.5 + dist_sign * 1e3 * (x[:sp] @ dp), avg_dist=1.0, max_dist=2.0,
+                                   tracking_rate=0.5, coverage=0.5 + cover_sign * 1e3 * (x[sp:] @ ds),
+                                   coverage_instant=0.1, collisions=0, captures=0, steps=100)] for x in d]
+
+        monkeypatch.setattr(team, "rollout", fake)
+        before = team.theta.copy()
+        team.step()
+        return (team.theta - before)[:sp], (team.theta - before)[sp:]
+
+    dirs: dict[str, np.ndarray] = {}
+    p1, s1 = step(True, 1.0, 1.0)
+    p2, s2 = step(True, -1.0, 1.0)  # only the coverage turned around: the pursuers' step stays
+    p3, s3 = step(True, 1.0, -1.0)  # only the distance turned around: the scouts' step stays
+    np.testing.assert_array_equal(p1, p2)
+    np.testing.assert_array_equal(s1, s3)
+    assert not np.array_equal(s1, s2) and not np.array_equal(p1, p3)
+    t1, _ = step(False, 1.0, 1.0)
+    t2, _ = step(False, -1.0, 1.0)  # the team's one fitness: the coverage moves the pursuers too
+    assert not np.array_equal(t1, t2)
+    with pytest.raises(SpecError, match=r"train\.es_role_fitness"):
+        _cfg(spec, share_params=True, es_iterations=1, es_role_fitness=True, es_coverage_weight=0.0)

@@ -11,6 +11,9 @@ along the rank-weighted differences with Adam. What is scored is what the evalua
               + coverage x es_coverage_weight - team_contacts x es_contact_weight
               + captures x es_capture_weight
 
+With ``train.es_role_fitness`` each role's block of weights ascends its own part of it, from the same rollouts:
+the pursuers' everything but the coverage term, the scouts' the coverage and contact terms.
+
 Every member of a population meets the same episodes (common random numbers: the same starts, obstacles and
 evaders with the same drawn parameters), so a difference in fitness is a difference in the actors, not in
 luck. The actors fly through the spec's avoidance layer as on the drone. Opponents: the held-out suite and the
@@ -193,22 +196,26 @@ class TeamES:
         recs = info["episodes"]
         return [recs[k * e:(k + 1) * e] for k in range(g)]
 
-    def episode_fitness(self, records: list[Any]) -> np.ndarray:
-        """The fitness of each episode record."""
+    def episode_fitness(self, records: list[Any], role: Role | None = None) -> np.ndarray:
+        """The fitness of each episode record: the team's, or with ``role`` (``train.es_role_fitness``) that role's
+        part of it: the pursuers' without the coverage term, the scouts' coverage and contacts."""
         tc = self.tc
-        return np.array([tc.es_tracking_weight * r.tracking_rate - tc.es_distance_weight * r.min_dist
-                         + tc.es_coverage_weight * r.coverage - tc.es_contact_weight * r.team_contacts
-                         + tc.es_capture_weight * r.captures for r in records], dtype=np.float64)
+        pursuit = role is not Role.SCOUT
+        cover = role is not Role.PURSUER
+        return np.array([pursuit * (tc.es_tracking_weight * r.tracking_rate - tc.es_distance_weight * r.min_dist
+                                    + tc.es_capture_weight * r.captures)
+                         + cover * tc.es_coverage_weight * r.coverage - tc.es_contact_weight * r.team_contacts
+                         for r in records], dtype=np.float64)
 
     def fitness(self, records: list[Any]) -> float:
         """The mean of ``episode_fitness`` over the records."""
         return float(self.episode_fitness(records).mean())
 
-    def ranking_scores(self, per_member: list[list[Any]]) -> tuple[np.ndarray, np.ndarray]:
-        """(what the members are ranked by, their mean fitness). Ranked by (``train.es_rank``): their mean
-        fitness ("total"), or their mean rank within each episode ("episode": every episode has the same say,
-        whatever its opponent's scale)."""
-        f = np.stack([self.episode_fitness(r) for r in per_member])  # [members, episodes]
+    def ranking_scores(self, per_member: list[list[Any]], role: Role | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(what the members are ranked by, their mean fitness; ``role``: that role's, ``episode_fitness``). Ranked
+        by (``train.es_rank``): their mean fitness ("total"), or their mean rank within each episode ("episode":
+        every episode has the same say, whatever its opponent's scale)."""
+        f = np.stack([self.episode_fitness(r, role) for r in per_member])  # [members, episodes]
         mean = f.mean(1)
         if self.tc.es_rank == "episode":
             return f.argsort(0, kind="stable").argsort(0, kind="stable").mean(1), mean
@@ -225,11 +232,12 @@ class TeamES:
         seed = int(self.rng.integers(2 ** 31))
         per_member = self.rollout(thetas, tc.es_episodes, seed)
         centre = per_member.pop()
-        f, fit = self.ranking_scores(per_member)
-        ranks = np.empty(2 * p)
-        ranks[np.argsort(f)] = np.arange(2 * p)
-        u = ranks / (2 * p - 1) - 0.5  # centred ranks
-        grad = ((u[:p] - u[p:])[:, None] * eps).sum(0) / (2 * p * sig)
+        _, fit = self.ranking_scores(per_member)
+        if tc.es_role_fitness:  # each role's block of weights along its own fitness's ranks
+            grad = np.concatenate([self._ascent(self.ranking_scores(per_member, r.role)[0], e, sig)
+                                   for r, e in zip(self.roles, self._split(eps))])
+        else:
+            grad = self._ascent(self.ranking_scores(per_member)[0], eps, sig)
         # Adam ascent
         self.iteration += 1
         b1, b2 = 0.9, 0.999
@@ -246,6 +254,16 @@ class TeamES:
                 "coverage": float(np.mean([r.coverage for r in recs])),
                 "team_contacts": float(np.mean([r.team_contacts for r in recs])), "sigma": sig,
                 "step_norm": float(np.linalg.norm(stepv))}
+
+    @staticmethod
+    def _ascent(f: np.ndarray, eps: np.ndarray, sig: float) -> np.ndarray:
+        """The antithetic estimate of the fitness gradient from the members' scores ``f`` [2P] (the +sigma
+        members, then the -sigma ones) and their directions ``eps`` [P, n], by centred ranks."""
+        p = eps.shape[0]
+        ranks = np.empty(2 * p)
+        ranks[np.argsort(f)] = np.arange(2 * p)
+        u = ranks / (2 * p - 1) - 0.5  # centred ranks
+        return ((u[:p] - u[p:])[:, None] * eps).sum(0) / (2 * p * sig)
 
     def state_dict(self) -> dict[str, Any]:
         return {"theta": self.theta.copy(), "m": self._m.copy(), "v": self._v.copy(), "iteration": self.iteration,
