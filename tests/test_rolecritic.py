@@ -304,7 +304,7 @@ def test_es_role_fitness_moves_each_role_by_its_own_terms_only(monkeypatch):
     spec = {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 1}}
     rng = np.random.default_rng(3)
 
-    def step(role_fitness: bool, cover_sign: float, dist_sign: float) -> tuple[np.ndarray, np.ndarray]:
+    def step(role_fitness: str, cover_sign: float, dist_sign: float) -> tuple[np.ndarray, np.ndarray]:
         cfg = _cfg(spec, share_params=True, es_iterations=1, es_population=6, es_episodes=1,
                    es_coverage_weight=1.0, es_role_fitness=role_fitness)
         team = TeamES(cfg.spec, cfg.rewards, MADDPG(cfg.spec, cfg.train).to_actors(), cfg.train, seed=0)
@@ -323,14 +323,21 @@ def test_es_role_fitness_moves_each_role_by_its_own_terms_only(monkeypatch):
         return (team.theta - before)[:sp], (team.theta - before)[sp:]
 
     dirs: dict[str, np.ndarray] = {}
-    p1, s1 = step(True, 1.0, 1.0)
-    p2, s2 = step(True, -1.0, 1.0)  # only the coverage turned around: the pursuers' step stays
-    p3, s3 = step(True, 1.0, -1.0)  # only the distance turned around: the scouts' step stays
+    p1, s1 = step("split", 1.0, 1.0)
+    p2, s2 = step("split", -1.0, 1.0)  # only the coverage turned around: the pursuers' step stays
+    p3, s3 = step("split", 1.0, -1.0)  # only the distance turned around: the scouts' step stays
     np.testing.assert_array_equal(p1, p2)
     np.testing.assert_array_equal(s1, s3)
     assert not np.array_equal(s1, s2) and not np.array_equal(p1, p3)
-    t1, _ = step(False, 1.0, 1.0)
-    t2, _ = step(False, -1.0, 1.0)  # the team's one fitness: the coverage moves the pursuers too
+    q1, r1 = step("pursuers", 1.0, 1.0)
+    q2, _ = step("pursuers", -1.0, 1.0)  # the pursuers' step ignores the coverage, the scouts' the team's
+    _, r3 = step("pursuers", 1.0, -1.0)
+    np.testing.assert_array_equal(q1, q2)
+    np.testing.assert_array_equal(q1, p1)
+    assert not np.array_equal(r1, r3)
+    t1, _ = step("team", 1.0, 1.0)
+    t2, _ = step("team", -1.0, 1.0)  # the team's one fitness: the coverage moves the pursuers too
     assert not np.array_equal(t1, t2)
-    with pytest.raises(SpecError, match=r"train\.es_role_fitness"):
-        _cfg(spec, share_params=True, es_iterations=1, es_role_fitness=True, es_coverage_weight=0.0)
+    for bad in ({"es_role_fitness": "split", "es_coverage_weight": 0.0}, {"es_role_fitness": "roles"}):
+        with pytest.raises(SpecError, match=r"train\.es_role_fitness"):
+            _cfg(spec, share_params=True, es_iterations=1, **bad)

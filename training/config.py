@@ -262,10 +262,11 @@ class TrainConfig:
     es_rank: str = "total"
     """How ES ranks its members: "total" (by mean fitness over the episodes) or "episode" (by mean rank within
     each episode, so that episodes against opponents with larger spreads of fitness do not outvote the rest)."""
-    es_role_fitness: bool = False
-    """Each role's weights ascend their own fitness: the pursuers' the pursuit terms (tracking, distance, contacts,
-    captures), the scouts' coverage and contacts (both from the same rollouts). False: both ascend the team's one
-    fitness, so a coverage weight large enough to move the scouts moves the pursuers off pursuit too."""
+    es_role_fitness: str = "team"
+    """Which fitness each role's weights ascend (all from the same rollouts): "team": both the team's one fitness,
+    so that a coverage weight large enough to move the scouts moves the pursuers off pursuit too; "split": the
+    pursuers' the pursuit terms (tracking, distance, contacts, captures), the scouts' coverage and contacts;
+    "pursuers": the pursuers' the pursuit terms, the scouts' the team's (they also help the pursuit)."""
     es_pool: tuple[str, ...] = ()
     """The training-pool behaviours ES's scripted episodes draw from (``training.evader_suite.POOL`` kinds);
     empty: all of them."""
@@ -342,8 +343,11 @@ class TrainConfig:
                      "es_capture_weight"):
             if not getattr(self, name) >= 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
-        if self.es_role_fitness and not self.es_coverage_weight > 0:
-            raise SpecError("train.es_role_fitness: the scouts' fitness is coverage (and contacts): set "
+        if self.es_role_fitness not in ("team", "split", "pursuers"):
+            raise SpecError(f"train.es_role_fitness: must be \"team\", \"split\" or \"pursuers\", got "
+                            f"{self.es_role_fitness!r}")
+        if self.es_role_fitness == "split" and not self.es_coverage_weight > 0:
+            raise SpecError("train.es_role_fitness = \"split\": the scouts' fitness is coverage (and contacts): set "
                             "train.es_coverage_weight > 0")
         if self.es_rank not in ("total", "episode"):
             raise SpecError(f"train.es_rank: must be \"total\" or \"episode\", got {self.es_rank!r}")

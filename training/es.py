@@ -12,7 +12,8 @@ along the rank-weighted differences with Adam. What is scored is what the evalua
               + captures x es_capture_weight
 
 With ``train.es_role_fitness`` each role's block of weights ascends its own part of it, from the same rollouts:
-the pursuers' everything but the coverage term, the scouts' the coverage and contact terms.
+the pursuers' everything but the coverage term, the scouts' the coverage and contact terms ("split") or the whole
+("pursuers").
 
 Every member of a population meets the same episodes (common random numbers: the same starts, obstacles and
 evaders with the same drawn parameters), so a difference in fitness is a difference in the actors, not in
@@ -233,8 +234,9 @@ class TeamES:
         per_member = self.rollout(thetas, tc.es_episodes, seed)
         centre = per_member.pop()
         _, fit = self.ranking_scores(per_member)
-        if tc.es_role_fitness:  # each role's block of weights along its own fitness's ranks
-            grad = np.concatenate([self._ascent(self.ranking_scores(per_member, r.role)[0], e, sig)
+        if tc.es_role_fitness != "team":  # each role's block of weights along its own fitness's ranks
+            own = {Role.PURSUER: Role.PURSUER, Role.SCOUT: Role.SCOUT if tc.es_role_fitness == "split" else None}
+            grad = np.concatenate([self._ascent(self.ranking_scores(per_member, own[r.role])[0], e, sig)
                                    for r, e in zip(self.roles, self._split(eps))])
         else:
             grad = self._ascent(self.ranking_scores(per_member)[0], eps, sig)
