@@ -17,8 +17,16 @@ run.
 Target (issue 13): a fast option >= 3x ``before``.
 
 Run: .venv/bin/python -m pytest tests/benchmarks/test_bench_maddpg.py --benchmark-enable
+(each variant's rounds one after the other), or interleaved: every variant once per round in a new random order, a
+ratio to ``before`` per round (a busy stretch of a shared machine slows every variant of that round alike):
+.venv/bin/python tests/benchmarks/test_bench_maddpg.py --rounds 300 [--json FILE]
 """
+import argparse
+import contextlib
 import dataclasses
+import json
+import random
+import time
 from pathlib import Path
 
 import numpy as np
@@ -80,15 +88,26 @@ def one_thread():
     torch.set_num_threads(old)
 
 
-@pytest.mark.benchmark(group="maddpg_update_role_based_batch256")
-@pytest.mark.parametrize("variant", list(VARIANTS))
-def test_update(benchmark, variant, one_thread, monkeypatch):
-    if variant == "before":
-        monkeypatch.setattr(networks, "shared_matmul", torch.matmul)
-        monkeypatch.setattr(maddpg, "soft_update", _old_soft_update)
-        monkeypatch.setattr(maddpg, "clip_grad_norm_per_agent", _old_clip)
-        monkeypatch.setattr(maddpg, "adam", _old_adam)
-        monkeypatch.setattr(networks.BatchedMLP, "forward_pre", _old_forward_pre)
+@contextlib.contextmanager
+def _as_before(enabled: bool):
+    """The learner's helpers as they were when issue 13 was filed, while the block runs (the ``before`` row):
+    Adam is chosen when a learner is built, the rest at every call."""
+    patches = [(networks, "shared_matmul", torch.matmul), (maddpg, "soft_update", _old_soft_update),
+               (maddpg, "clip_grad_norm_per_agent", _old_clip), (maddpg, "adam", _old_adam),
+               (networks.BatchedMLP, "forward_pre", _old_forward_pre)] if enabled else []
+    saved = [(obj, name, getattr(obj, name)) for obj, name, _ in patches]
+    for obj, name, new in patches:
+        setattr(obj, name, new)
+    try:
+        yield
+    finally:
+        for obj, name, old in saved:
+            setattr(obj, name, old)
+
+
+def _learner(variant: str):
+    """(learner, batch) of a variant, warmed by 3 updates; build and call it inside ``_as_before(variant ==
+    "before")``."""
     if VARIANTS[variant] is None:
         shipped = ExperimentConfig.from_toml(ROOT / "configs" / "role_based.toml")
         spec, tc = shipped.spec, dataclasses.replace(shipped.train, threads=1, **SHIPPED[variant])
@@ -104,8 +123,74 @@ def test_update(benchmark, variant, one_thread, monkeypatch):
              torch.randn(k, n, generator=g), torch.randn(k, n, d, generator=g), torch.full((k, n, 2), float("nan")))
     for _ in range(3):  # allocator and optimizer state warm
         agent.update(batch)
-    losses = benchmark(agent.update, batch)
+    return agent, batch
+
+
+@pytest.mark.benchmark(group="maddpg_update_role_based_batch256")
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_update(benchmark, variant, one_thread):
+    with _as_before(variant == "before"):
+        agent, batch = _learner(variant)
+        losses = benchmark(agent.update, batch)
     assert np.isfinite(losses["critic_loss"])
     if benchmark.stats:
         benchmark.extra_info["updates_per_s_median"] = 1.0 / benchmark.stats.stats.median
         benchmark.extra_info["updates_per_s_best"] = 1.0 / benchmark.stats.stats.min
+
+
+def interleaved(rounds: int, seed: int = 0) -> dict:
+    """Every variant's update timed once per round, the variants in a new random order each round, so that a
+    stretch of a busy machine slows all of them alike: per variant the median time and the median over rounds of
+    ``before``'s time in that round over the variant's (a paired ratio)."""
+    torch.set_num_threads(1)
+    made = {}
+    for v in VARIANTS:
+        with _as_before(v == "before"):
+            made[v] = _learner(v)
+    order = list(VARIANTS)
+    rng = random.Random(seed)
+    times: dict[str, list[float]] = {v: [] for v in VARIANTS}
+    for _ in range(rounds):
+        rng.shuffle(order)
+        for v in order:
+            agent, batch = made[v]
+            with _as_before(v == "before"):
+                t0 = time.perf_counter()
+                agent.update(batch)
+                times[v].append(time.perf_counter() - t0)
+    before = np.array(times["before"])
+    return {"rounds": rounds, "variants": {v: {
+        "median_ms": 1e3 * float(np.median(t)), "p25_ms": 1e3 * float(np.percentile(t, 25)),
+        "p75_ms": 1e3 * float(np.percentile(t, 75)),
+        "ratio_to_before_median": float(np.median(before / np.array(t))),
+        "ratio_to_before_p25": float(np.percentile(before / np.array(t), 25)),
+        "ratio_to_before_p75": float(np.percentile(before / np.array(t), 75))} for v, t in times.items()}}
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description="Learner updates interleaved: every variant once per round, in a new "
+                                 "random order each round; per variant the median time and the median paired "
+                                 "ratio to the `before` learner of the same round.")
+    ap.add_argument("--rounds", type=int, default=300, help="rounds (each times every variant once)")
+    ap.add_argument("--json", type=Path, help="also write the figures here")
+    ap.add_argument("--profile", metavar="VARIANT", choices=list(VARIANTS),
+                    help="instead: torch.profiler's table of 10 updates of this variant, by self CPU time")
+    args = ap.parse_args()
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+        torch.set_num_threads(1)
+        with _as_before(args.profile == "before"):
+            agent, batch = _learner(args.profile)
+            with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+                for _ in range(10):
+                    agent.update(batch)
+        print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=15,
+                                                                 max_name_column_width=30))
+        raise SystemExit(0)
+    out = interleaved(args.rounds)
+    print(f"{'variant':14s} {'median ms':>10s} {'p25-p75 ms':>14s} {'x before (paired median, p25-p75)':>36s}")
+    for v, r in out["variants"].items():
+        print(f"{v:14s} {r['median_ms']:10.2f} {r['p25_ms']:6.2f}-{r['p75_ms']:<7.2f} "
+              f"{r['ratio_to_before_median']:>20.2f} ({r['ratio_to_before_p25']:.2f}-{r['ratio_to_before_p75']:.2f})")
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2) + "\n")
