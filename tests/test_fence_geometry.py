@@ -103,8 +103,8 @@ def _grazes(fence: FenceConfig, s: np.ndarray, u: np.ndarray) -> list[float]:
         return []
     out = []
     for c, radii in zip(g.centres, zip(g.radii, g.grown)):
-        along = float((c - s[:2]) @ h) / hn  # horizontal distance to the foot of the perpendicular
         d = c - s[:2]
+        along = float(d @ h) / hn  # horizontal distance to the foot of the perpendicular (along the ray: / hn)
         perp = abs(float(h[0] * d[1] - h[1] * d[0])) / hn
         out += [along / hn for r in radii if along >= 0 and abs(perp - r) <= 1e-9]
     return out

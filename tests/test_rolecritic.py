@@ -309,7 +309,9 @@ def test_es_role_fitness_moves_each_role_by_its_own_terms_only(monkeypatch):
                    es_coverage_weight=1.0, es_role_fitness=role_fitness)
         team = TeamES(cfg.spec, cfg.rewards, MADDPG(cfg.spec, cfg.train).to_actors(), cfg.train, seed=0)
         sp = team.sizes[0]
-        dp, ds = dirs.setdefault("p", rng.standard_normal(sp)), dirs.setdefault("s", rng.standard_normal(team.sizes[1]))
+        if not dirs:  # the directions that pay, drawn once for every call
+            dirs.update(p=rng.standard_normal(sp), s=rng.standard_normal(team.sizes[1]))
+        dp, ds = dirs["p"], dirs["s"]
 
         def fake(thetas, episodes, seed):
             d = thetas - team.theta

@@ -233,13 +233,14 @@ class TeamES:
         seed = int(self.rng.integers(2 ** 31))
         per_member = self.rollout(thetas, tc.es_episodes, seed)
         centre = per_member.pop()
-        _, fit = self.ranking_scores(per_member)
+        f, fit = self.ranking_scores(per_member)
         if tc.es_role_fitness != "team":  # each role's block of weights along its own fitness's ranks
             own = {Role.PURSUER: Role.PURSUER, Role.SCOUT: Role.SCOUT if tc.es_role_fitness == "split" else None}
-            grad = np.concatenate([self._ascent(self.ranking_scores(per_member, own[r.role])[0], e, sig)
+            grad = np.concatenate([self._ascent(f if own[r.role] is None else
+                                                self.ranking_scores(per_member, own[r.role])[0], e, sig)
                                    for r, e in zip(self.roles, self._split(eps))])
         else:
-            grad = self._ascent(self.ranking_scores(per_member)[0], eps, sig)
+            grad = self._ascent(f, eps, sig)
         # Adam ascent
         self.iteration += 1
         b1, b2 = 0.9, 0.999

@@ -44,10 +44,10 @@ VARIANTS = {
     "global": {"critic": "global"},
     "role": {"critic": "role"},
     "role_share": {"critic": "role", "share_params": True},
-    "shipped": None,
-    "shipped_c128": None,
 }
 SHIPPED = {"shipped": {}, "shipped_c128": {"critic_hidden": (128, 128)}}
+"""Variants on configs/role_based.toml's learner settings (the rows above: on the default config's)."""
+ALL = [*VARIANTS, *SHIPPED]
 
 
 # ---- the learner's helpers as they were when issue 13 was filed (the `before` row) -------------------------
@@ -108,7 +108,7 @@ def _as_before(enabled: bool):
 def _learner(variant: str):
     """(learner, batch) of a variant, warmed by 3 updates; build and call it inside ``_as_before(variant ==
     "before")``."""
-    if VARIANTS[variant] is None:
+    if variant in SHIPPED:
         shipped = ExperimentConfig.from_toml(ROOT / "configs" / "role_based.toml")
         spec, tc = shipped.spec, dataclasses.replace(shipped.train, threads=1, **SHIPPED[variant])
     else:
@@ -127,7 +127,7 @@ def _learner(variant: str):
 
 
 @pytest.mark.benchmark(group="maddpg_update_role_based_batch256")
-@pytest.mark.parametrize("variant", list(VARIANTS))
+@pytest.mark.parametrize("variant", ALL)
 def test_update(benchmark, variant, one_thread):
     with _as_before(variant == "before"):
         agent, batch = _learner(variant)
@@ -144,12 +144,12 @@ def interleaved(rounds: int, seed: int = 0) -> dict:
     ``before``'s time in that round over the variant's (a paired ratio)."""
     torch.set_num_threads(1)
     made = {}
-    for v in VARIANTS:
+    for v in ALL:
         with _as_before(v == "before"):
             made[v] = _learner(v)
-    order = list(VARIANTS)
+    order = list(ALL)
     rng = random.Random(seed)
-    times: dict[str, list[float]] = {v: [] for v in VARIANTS}
+    times: dict[str, list[float]] = {v: [] for v in ALL}
     for _ in range(rounds):
         rng.shuffle(order)
         for v in order:
@@ -159,12 +159,13 @@ def interleaved(rounds: int, seed: int = 0) -> dict:
                 agent.update(batch)
                 times[v].append(time.perf_counter() - t0)
     before = np.array(times["before"])
-    return {"rounds": rounds, "variants": {v: {
-        "median_ms": 1e3 * float(np.median(t)), "p25_ms": 1e3 * float(np.percentile(t, 25)),
-        "p75_ms": 1e3 * float(np.percentile(t, 75)),
-        "ratio_to_before_median": float(np.median(before / np.array(t))),
-        "ratio_to_before_p25": float(np.percentile(before / np.array(t), 25)),
-        "ratio_to_before_p75": float(np.percentile(before / np.array(t), 75))} for v, t in times.items()}}
+    out = {}
+    for v, t in times.items():
+        ms, ratio = 1e3 * np.percentile(t, [25, 50, 75]), np.percentile(before / np.array(t), [25, 50, 75])
+        out[v] = {"median_ms": float(ms[1]), "p25_ms": float(ms[0]), "p75_ms": float(ms[2]),
+                  "ratio_to_before_median": float(ratio[1]), "ratio_to_before_p25": float(ratio[0]),
+                  "ratio_to_before_p75": float(ratio[2])}
+    return {"rounds": rounds, "variants": out}
 
 
 if __name__ == "__main__":
@@ -173,7 +174,7 @@ if __name__ == "__main__":
                                  "ratio to the `before` learner of the same round.")
     ap.add_argument("--rounds", type=int, default=300, help="rounds (each times every variant once)")
     ap.add_argument("--json", type=Path, help="also write the figures here")
-    ap.add_argument("--profile", metavar="VARIANT", choices=list(VARIANTS),
+    ap.add_argument("--profile", metavar="VARIANT", choices=ALL,
                     help="instead: torch.profiler's table of 10 updates of this variant, by self CPU time")
     args = ap.parse_args()
     if args.profile:
