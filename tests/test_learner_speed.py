@@ -29,8 +29,11 @@ def _reference_forward_split(self, state, act):
     return self.mlp(x, torch.arange(e))
 
 
-def _reference_forward_pre(self, x, index=None):
-    """``BatchedMLP.forward_pre`` as written before the speed-ups: matmul, then bias, then ReLU."""
+def _reference_forward_pre(self, x, index=None, in_scale=None, in_shift=None):
+    """``BatchedMLP.forward_pre`` as written before the speed-ups: the input scaled, then per layer matmul, bias,
+    ReLU."""
+    if in_scale is not None:
+        x = x * in_scale + in_shift
     layers = self.layers(index)
     for k, (w, b) in enumerate(layers):
         x = networks.shared_matmul(x, w) + b
@@ -126,3 +129,158 @@ def test_shared_linear_narrow_and_wide_outputs_and_their_gradients_equal_matmul_
                 into += [y.detach(), xr.grad, wr.grad, br.grad]
             for a, e, name in zip(got, want, ("y", "dx", "dw", "db")):
                 torch.testing.assert_close(a, e, rtol=1e-5, atol=1e-5, msg=f"{name}, out={out}, shared={shared}")
+
+
+# ---- the pooled MLP and the flat parameters: the same values bit for bit ------------------------------------
+def _mlp_and_grads(mlp, x, index, scale, shift, grad_out, pooled, monkeypatch):
+    """(output, x's gradient, every parameter's gradient) of ``mlp.forward_pre`` with ``networks.POOLED``."""
+    monkeypatch.setattr(networks, "POOLED", pooled)
+    mlp.zero_grad(set_to_none=True)
+    xr = x.detach().clone().requires_grad_(x.requires_grad)
+    y = mlp.forward_pre(xr, index, scale, shift)
+    y.backward(grad_out)
+    return [y.detach(), xr.grad, *[p.grad.clone() for p in mlp.parameters()]]
+
+
+@pytest.mark.parametrize("hidden,out", [((64, 64), 2), ((8, 64), 1), ((64,), 20), ((24, 12, 40), 5)])
+@pytest.mark.parametrize("shared,scaled,x_grad", [(False, False, False), (True, True, False), (True, False, True),
+                                                  (False, True, True)])
+def test_pooled_mlp_equals_layer_by_layer_bit_for_bit(hidden, out, shared, scaled, x_grad, monkeypatch):
+    """``_PooledMLP`` (every width path: narrow hidden layers, a wide output, rows picked by an index, the input
+    scaling, an input that needs its gradient) against ``shared_linear`` layer by layer and autograd."""
+    torch.set_num_threads(1)
+    g = torch.Generator().manual_seed(1)
+    mlp = networks.BatchedMLP(3, 9, hidden, out, "none", g)
+    index = torch.tensor([0, 0, 1, 2, 2]) if shared else None
+    e = 5 if shared else 3
+    x = torch.randn(e, 33, 9, generator=g).requires_grad_(x_grad)
+    scale = torch.rand(e, 1, 9, generator=g) + 0.5 if scaled else None
+    shift = torch.randn(e, 1, 9, generator=g) if scaled else None
+    grad_out = torch.randn(e, 33, out, generator=g)
+    for _ in range(2):  # the second time on buffers the pool hands out again
+        got = _mlp_and_grads(mlp, x, index, scale, shift, grad_out, True, monkeypatch)
+        want = _mlp_and_grads(mlp, x, index, scale, shift, grad_out, False, monkeypatch)
+        for name, a, b in zip(["y", "dx"] + [n for n, _ in mlp.named_parameters()], got, want):
+            if b is None:
+                assert a is None and name == "dx" and not x_grad, name
+            else:
+                assert torch.equal(a, b), name
+
+
+def test_pooled_buffers_are_not_handed_out_while_a_graph_holds_them():
+    """Two graphs alive at once, a no-grad call and a graph never backpropagated in between: each backward pass
+    still reads its own activations (the gradients equal those of separate modules that share nothing)."""
+    torch.set_num_threads(1)
+    g = torch.Generator().manual_seed(2)
+    mlp = networks.BatchedMLP(2, 6, (32, 32), 2, "tanh", g)
+    xs = [torch.randn(2, 17, 6, generator=g) for _ in range(4)]
+
+    def grads_alone(x):
+        fresh = networks.BatchedMLP(2, 6, (32, 32), 2, "tanh")
+        fresh.load_state_dict(mlp.state_dict())
+        fresh(x).square().sum().backward()
+        return [p.grad.clone() for p in fresh.parameters()]
+
+    want = [grads_alone(x) for x in xs[:2]]
+    y0 = mlp(xs[0]).square().sum()
+    y1 = mlp(xs[1]).square().sum()
+    with torch.no_grad():
+        mlp(xs[2])  # takes and gives back buffers while y0's and y1's are held
+    mlp(xs[3]).square().sum()  # a graph dropped without backward: its buffers are simply not given back
+    for y, w in ((y1, want[1]), (y0, want[0])):  # backward in the other order
+        mlp.zero_grad(set_to_none=True)
+        y.backward()
+        for p, expect in zip(mlp.parameters(), w):
+            assert torch.equal(p.grad, expect)
+
+
+def test_pooled_mlp_refuses_a_second_backward_through_one_graph():
+    mlp = networks.BatchedMLP(1, 4, (32,), 2, "none")
+    y = mlp(torch.randn(1, 5, 4)).sum()
+    y.backward(retain_graph=True)
+    with pytest.raises(RuntimeError, match="second backward pass"):
+        y.backward()
+
+
+def test_pool_keeps_a_bounded_number_of_tensors():
+    pool = networks._BufferPool()
+    like = torch.zeros(1)
+    for n in range(pool.MAX_SHAPES + 5):
+        for _ in range(pool.MAX_PER_SHAPE + 3):
+            pool.give(torch.empty(n + 1, 2))
+    assert len(pool._free) == pool.MAX_SHAPES
+    assert all(len(v) == pool.MAX_PER_SHAPE for v in pool._free.values())
+    assert pool.take((pool.MAX_SHAPES + 5, 2), like).shape == (pool.MAX_SHAPES + 5, 2)  # kept: the newest
+    with torch.inference_mode():  # never hands out, nor keeps, an inference-mode tensor
+        t = pool.take((pool.MAX_SHAPES + 5, 2), like)
+        assert t.is_inference()
+        pool.give(t)
+    assert not any(x.is_inference() for v in pool._free.values() for x in v)
+
+
+def _learner_run(cfg, monkeypatch, fast: bool):
+    """Six updates (an imitation one among them) and two cloning steps; every learned tensor, the optimizers'
+    states and the losses. ``fast``: as shipped; else per-tensor fused Adam, per-tensor soft updates and the
+    layer-by-layer MLP."""
+    with monkeypatch.context() as m:
+        if not fast:
+            m.setattr(networks, "POOLED", False)
+            m.setattr(maddpg, "adam", lambda online, lr, target=None: torch.optim.Adam(online.parameters(), lr=lr,
+                                                                                     fused=True))
+        agent = make_learner(cfg.spec, cfg.train)
+        n, d, k = cfg.spec.n_agents, cfg.spec.max_obs_dim, 40
+        g = torch.Generator().manual_seed(5)
+        losses = []
+        for step in range(6):
+            teach = torch.rand(k, n, 2, generator=g) * 2 - 1
+            batch = (torch.randn(k, n, d, generator=g), torch.rand(k, n, 2, generator=g) * 2 - 1,
+                     torch.randn(k, n, generator=g), torch.randn(k, n, d, generator=g),
+                     torch.full((k, n, 2), float("nan")), teach)
+            losses.append(agent.update(batch, imitation=step == 1))
+            if step in (2, 4):
+                losses.append({"clone": agent.clone_step(batch[0], teach)})
+        tensors = {f"{name}.{key}": v.detach().clone() for name in ("actors", "critics", "actors_tgt", "critics_tgt")
+                   for key, v in getattr(agent, name).state_dict().items()}
+        return losses, tensors, agent.state_dict()
+
+
+@pytest.mark.parametrize("variant", ["shipped", "default", "role_matd3"])
+def test_flat_adam_and_pooled_mlp_train_bit_for_bit_like_per_tensor_adam(variant, monkeypatch):
+    """The learner as it runs (``FlatAdam`` on flat parameters, one-call soft updates, ``_PooledMLP``) gives
+    exactly the weights, losses and Adam moments of per-tensor fused Adam, per-tensor soft updates and the
+    layer-by-layer MLP; its optimizer ``state_dict`` has that optimizer's layout, and each loads the other's."""
+    torch.set_num_threads(1)
+    cfg = ExperimentConfig.from_dict({"name": "t", "spec": {"team": {"n_pursuers": 3, "n_scouts": 2,
+                                                                     "n_evaders": 1}},
+                                      "train": {"batch_size": 40, "threads": 1, **VARIANTS[variant]}})
+    fast_losses, fast, fast_sd = _learner_run(cfg, monkeypatch, True)
+    ref_losses, ref, ref_sd = _learner_run(cfg, monkeypatch, False)
+    assert fast_losses == ref_losses
+    assert fast.keys() == ref.keys() and all(torch.equal(fast[key], ref[key]) for key in ref)
+    for opt in ("actor_opt", "critic_opt"):
+        a, b = fast_sd[opt], ref_sd[opt]
+        assert [{k: v for k, v in grp.items() if k != "fused"} for grp in a["param_groups"]] == \
+            [{k: v for k, v in grp.items() if k != "fused"} for grp in b["param_groups"]]
+        assert a["state"].keys() == b["state"].keys() and len(a["state"]) > 0
+        for i in b["state"]:
+            assert a["state"][i].keys() == b["state"][i].keys()
+            assert all(torch.equal(a["state"][i][key], b["state"][i][key]) for key in b["state"][i])
+    # a per-tensor state loads into the flat learner and continues exactly as the flat one does
+    agent = make_learner(cfg.spec, cfg.train)
+    agent.load_state_dict(ref_sd)
+    assert agent.state_dict()["actor_opt"]["state"][0]["exp_avg"].shape == ref_sd["actor_opt"]["state"][0][
+        "exp_avg"].shape
+
+
+def test_flat_adam_takes_back_a_replaced_gradient_and_refuses_a_moved_parameter():
+    mlp = networks.BatchedMLP(2, 3, (4,), 2, "none")
+    opt = maddpg.FlatAdam(mlp, 0.1)
+    before = [p.detach().clone() for p in mlp.parameters()]
+    opt.zero_grad()
+    mlp.weights[0].grad = torch.ones_like(mlp.weights[0])  # replaced, not accumulated into the buffer
+    opt.step()
+    moved = [not torch.equal(p, b) for p, b in zip(mlp.parameters(), before)]
+    assert moved == [True, False, False, False]  # the replaced gradient was taken; zero elsewhere
+    mlp.weights[0].data = torch.zeros_like(mlp.weights[0])
+    with pytest.raises(RuntimeError, match="replaced"):
+        opt.step()

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import weakref
 from typing import Any, NamedTuple, Sequence
 
 import numpy as np
@@ -133,16 +134,125 @@ def clip_grad_norm_per_agent(params: Sequence[torch.Tensor], max_norm: float) ->
     return norms
 
 
+class FlatParams:
+    """Every parameter of ``module`` moved into one contiguous buffer ``data`` (each parameter a view of it, in
+    ``module.parameters()`` order), and with ``grads`` every gradient into ``grad`` likewise (each ``p.grad`` a
+    view that backward passes accumulate into), so that Adam, zeroing the gradients and the soft target update
+    are one call on one tensor each instead of one per tensor. The values are the same bit for bit: those
+    calls are element-wise. The module must not be moved (``.to``) afterwards."""
+
+    def __init__(self, module: nn.Module, grads: bool = True) -> None:
+        self.params = list(module.parameters())
+        first = self.params[0]
+        self.data = torch.empty(sum(p.numel() for p in self.params), dtype=first.dtype, device=first.device)
+        self.grad = torch.zeros_like(self.data) if grads else None
+        self.views: list[torch.Tensor] = []
+        self.grad_views: list[torch.Tensor] = []
+        off = 0
+        with torch.no_grad():
+            for p in self.params:
+                n = p.numel()
+                self.data[off:off + n].copy_(p.reshape(-1))
+                p.data = self.data[off:off + n].view_as(p)
+                self.views.append(p.data)
+                if self.grad is not None:
+                    p.grad = self.grad[off:off + n].view_as(p)
+                    self.grad_views.append(p.grad)
+                off += n
+        _FLAT[module] = self
+
+    def sync_grads(self) -> None:
+        """Make sure the buffer ``grad`` holds every parameter's gradient: a gradient that something replaced
+        (``p.grad = ...``, or set to None) is copied back in and the view restored."""
+        for p, v, g in zip(self.params, self.views, self.grad_views):
+            if p.data.data_ptr() != v.data_ptr():
+                raise RuntimeError("a flattened parameter was replaced (module moved or .data assigned); build "
+                                   "the optimizer after the module is in place")
+            if p.grad is not g:
+                if p.grad is None:
+                    g.zero_()
+                else:
+                    g.copy_(p.grad)
+                p.grad = g
+
+
+_FLAT: "weakref.WeakKeyDictionary[nn.Module, FlatParams]" = weakref.WeakKeyDictionary()
+"""Modules whose parameters ``FlatParams`` moved into one buffer (``soft_update`` reads it)."""
+
+
+class FlatAdam:
+    """Fused Adam on a module's ``FlatParams``: one tensor per step. The same steps as ``torch.optim.Adam(
+    module.parameters(), fused=True)``, bit for bit (Adam is element-wise), and the same ``state_dict`` layout
+    (per parameter, as that optimizer's), so checkpoints written by either load into both."""
+
+    def __init__(self, module: nn.Module, lr: float) -> None:
+        self.flat = FlatParams(module)
+        self.param = nn.Parameter(self.flat.data)  # shares the buffer
+        self.param.grad = self.flat.grad
+        self.opt = torch.optim.Adam([self.param], lr=lr, fused=True)
+
+    @property
+    def param_groups(self) -> list[dict[str, Any]]:
+        return self.opt.param_groups
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        """Zero the gradient buffer (``set_to_none`` is accepted and ignored: the buffer stays)."""
+        self.flat.sync_grads()
+        self.flat.grad.zero_()
+
+    def step(self) -> None:
+        self.flat.sync_grads()
+        self.param.grad = self.flat.grad
+        self.opt.step()
+
+    def state_dict(self) -> dict[str, Any]:
+        """``torch.optim.Adam``'s layout over the module's parameters (the moments split per parameter)."""
+        sd = self.opt.state_dict()
+        group = {**sd["param_groups"][0], "params": list(range(len(self.flat.params)))}
+        state: dict[int, dict[str, torch.Tensor]] = {}
+        if 0 in sd["state"]:
+            st, off = sd["state"][0], 0
+            for i, p in enumerate(self.flat.params):
+                n = p.numel()
+                state[i] = {key: (v.clone() if v.dim() == 0 else v[off:off + n].view_as(p).clone())
+                            for key, v in st.items()}
+                off += n
+        return {"state": state, "param_groups": [group]}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        """A ``state_dict`` of this class or of ``torch.optim.Adam`` over the same module's parameters."""
+        groups = sd["param_groups"]
+        n = len(self.flat.params)
+        if len(groups) != 1 or len(groups[0]["params"]) != n:
+            raise ValueError(f"optimizer state for {[len(g['params']) for g in groups]} parameters, this module "
+                             f"has {n}: use the run's own config.toml")
+        state = {}
+        ids = groups[0]["params"]
+        if any(i in sd["state"] for i in ids):
+            per = [sd["state"][i] for i in ids]
+            state[0] = {key: (per[0][key] if per[0][key].dim() == 0
+                              else torch.cat([st[key].reshape(-1) for st in per]))
+                        for key in per[0]}
+        self.opt.load_state_dict({"state": state, "param_groups": [{**groups[0], "params": [0]}]})
+
+
 @torch.no_grad()
 def soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
-    """target <- tau x online + (1 - tau) x target (one fused call over every tensor)."""
+    """target <- tau x online + (1 - tau) x target: one call on the flat buffers when both modules have them
+    (``FlatParams``), else one fused call over every tensor."""
+    flat_t, flat_o = _FLAT.get(target), _FLAT.get(online)
+    if flat_t is not None and flat_o is not None:
+        flat_t.data.lerp_(flat_o.data, tau)
+        return
     torch._foreach_lerp_(list(target.parameters()), [p.detach() for p in online.parameters()], tau)
 
 
-def adam(params: Any, lr: float) -> torch.optim.Adam:
-    """Adam with the fused kernel (one call per step for every tensor; the same algorithm as the per-tensor loop,
-    several times cheaper for a learner of a few dozen small tensors)."""
-    return torch.optim.Adam(params, lr=lr, fused=True)
+def adam(online: nn.Module, lr: float, target: nn.Module | None = None) -> FlatAdam:
+    """The learner's optimizer for ``online``: fused Adam on its parameters moved into one buffer
+    (``FlatAdam``), and ``target``'s parameters into one buffer too (``soft_update``: one call)."""
+    if target is not None:
+        FlatParams(target, grads=False)
+    return FlatAdam(online, lr)
 
 
 def global_state_dim(spec: SwarmSpec) -> int:
@@ -244,8 +354,8 @@ class MADDPG:
             mod.to(dev)
         for mod in (self.actors_tgt, self.critics_tgt):
             mod.requires_grad_(False)
-        self.actor_opt = adam(self.actors.parameters(), cfg.actor_lr)
-        self.critic_opt = adam(self.critics.parameters(), cfg.critic_lr)
+        self.actor_opt = adam(self.actors, cfg.actor_lr, self.actors_tgt)
+        self.critic_opt = adam(self.critics, cfg.critic_lr, self.critics_tgt)
         learn = torch.ones(n, device=dev)
         if cfg.evaders in ("static", "scripted"):  # scripted evaders' actions come from the trainer
             learn[spec.team.n_team:] = 0.0
@@ -294,7 +404,7 @@ class MADDPG:
         """Actions ``[B, N, 2]`` in [-1, 1] for observations ``[B, N, D]``, with Gaussian noise of std
         ``noise_std``. Static evaders always get zero."""
         o = torch.as_tensor(obs, dtype=torch.float32, device=self.device).transpose(0, 1)
-        a = self.actors(self.actor_input(o), self._actor_ix)  # [N, B, 2]
+        a = self.actors(o, self._actor_ix, self._in_scale, self._in_shift)  # [N, B, 2]
         if noise_std > 0:
             a = a + noise_std * torch.randn(a.shape, generator=generator, device=self.device)
         a = a.clamp(-1.0, 1.0) * self.learn_mask.view(-1, 1, 1)
@@ -326,7 +436,8 @@ class MADDPG:
         agent or a frozen opponent did at ``next_obs``); where they are NaN (unknown, the replay buffer's
         default) or not given, the target actors' for agents that learn (with ``matd3``'s clipped smoothing
         noise) and zero for those that do not (static evaders)."""
-        tgt = self.actors_tgt(self.actor_input(next_obs.transpose(0, 1)), self._actor_ix).transpose(0, 1)
+        tgt = self.actors_tgt(next_obs.transpose(0, 1), self._actor_ix, self._in_scale, self._in_shift)
+        tgt = tgt.transpose(0, 1)
         if self.cfg.algorithm == "matd3":
             c = self.cfg.target_noise_clip
             noise = torch.randn(tgt.shape, generator=self.target_gen, device=self.device) * self.cfg.target_noise
@@ -379,8 +490,7 @@ class MADDPG:
         ``imitation``, no critic: the distance to the teacher's actions)."""
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
-        x = self.actor_input(obs.transpose(0, 1))
-        pre = self.actors.forward_pre(x, self._actor_ix)  # [N, K, 2]
+        pre = self.actors.forward_pre(obs.transpose(0, 1), self._actor_ix, self._in_scale, self._in_shift)
         mu = torch.tanh(pre)
         extra: dict[str, float] = {}
         bc_n = None
@@ -445,7 +555,7 @@ class MADDPG:
         """One behaviour-cloning step of every actor (no critic, no target update) on observations ``[K, N, D]``
         and the teacher's actions ``[K, N, 2]``; returns the mean squared distance to the teacher before it."""
         cfg = self.cfg
-        pre = self.actors.forward_pre(self.actor_input(obs.transpose(0, 1)), self._actor_ix)  # [N, K, 2]
+        pre = self.actors.forward_pre(obs.transpose(0, 1), self._actor_ix, self._in_scale, self._in_shift)
         bc_n = self._bc_loss(torch.tanh(pre), teach, obs)
         loss_n = bc_n + cfg.action_reg * pre.pow(2).mean((1, 2))
         self.actor_opt.zero_grad(set_to_none=True)

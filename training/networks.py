@@ -12,10 +12,13 @@ twin critics: two models per agent). Without it, row e is model e (the plain one
 from __future__ import annotations
 
 import math
+import threading
+import weakref
 from typing import Sequence
 
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 
 class Actor(nn.Module):
@@ -102,6 +105,146 @@ class _NarrowLinear(torch.autograd.Function):
         return gx, gw, gb
 
 
+POOLED = True
+"""``BatchedMLP.forward_pre`` runs per-row inputs through ``_PooledMLP`` (False: layer by layer through
+``shared_linear``, which computes the same values bit for bit)."""
+
+
+class _BufferPool:
+    """Tensors to reuse, by shape: what ``take`` hands out is not handed out again until it is given back. A
+    fresh ``[12, 256, 64]`` activation (786 kB) costs its first touch of new memory pages (the allocator returns
+    freed blocks of that size to the system): measured 4 x 437 us per learner update for the bias copies
+    alone, against 4 x 112 us on reused memory (BENCHMARKS.md, Learner)."""
+
+    MAX_SHAPES = 16
+    """Shapes kept at most (the oldest dropped first): a caller whose batch size changes at every call does not
+    grow the pool without bound."""
+    MAX_PER_SHAPE = 8
+    """Free tensors kept at most per shape (an update holds 4 of the actors' hidden shape at once)."""
+
+    def __init__(self) -> None:
+        self._free: dict[tuple, list[torch.Tensor]] = {}  # (shape, dtype, device) -> free tensors
+        self._lock = threading.Lock()
+
+    def take(self, shape: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
+        if not torch.is_inference_mode_enabled():  # (a tensor made in inference mode cannot serve outside it)
+            with self._lock:
+                free = self._free.get((shape, like.dtype, like.device))
+                if free:
+                    return free.pop()
+        return torch.empty(shape, dtype=like.dtype, device=like.device)
+
+    def give(self, t: torch.Tensor) -> None:
+        if t.is_inference():
+            return
+        key = (tuple(t.shape), t.dtype, t.device)
+        with self._lock:
+            if key not in self._free and len(self._free) >= self.MAX_SHAPES:
+                del self._free[next(iter(self._free))]
+            free = self._free.setdefault(key, [])
+            if len(free) < self.MAX_PER_SHAPE:
+                free.append(t)
+
+
+_POOLS: "weakref.WeakKeyDictionary[nn.Module, _BufferPool]" = weakref.WeakKeyDictionary()
+_POOLS_LOCK = threading.Lock()
+
+
+def _pool_of(module: nn.Module) -> _BufferPool:
+    """The module's buffer pool (kept beside it, not in it: a deep copy or a pickle of the module has none)."""
+    with _POOLS_LOCK:
+        pool = _POOLS.get(module)
+        if pool is None:
+            pool = _POOLS[module] = _BufferPool()
+        return pool
+
+
+class _PooledMLP(torch.autograd.Function):
+    """``BatchedMLP.forward_pre`` on a per-row input ``[E, B, in]``, weights and biases per row
+    (``layers(index)``), as one autograd node. Every product is the one ``shared_linear`` and autograd would
+    compute (``baddbmm`` with the bias, ``_NarrowLinear``'s orientation for narrow outputs; backward: the
+    input's gradient ``g w^T``, the weight's ``x^T g``, the bias's ``g`` summed over the batch, ReLU's
+    ``threshold_backward``), so the results are equal bit for bit; what differs is where they are written. The
+    hidden activations (wide layers) are written into buffers of the module's pool, kept until the backward
+    pass (or given back at once when no gradient is wanted), and the backward pass's hidden gradients too.
+    Only the output and the returned gradients are fresh tensors. A second backward pass through the same
+    graph (``retain_graph``) is refused: its activations may have been reused."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, pool: _BufferPool, grad: bool,  # type: ignore[override]
+                in_scale: torch.Tensor | None, in_shift: torch.Tensor | None, *wb: torch.Tensor) -> torch.Tensor:
+        ws, bs = wb[0::2], wb[1::2]
+        last = len(ws) - 1
+        pooled: list[torch.Tensor] = []
+        h = x
+        if in_scale is not None:  # x * in_scale + in_shift, as two operations (the same rounding)
+            h = torch.mul(x, in_scale, out=pool.take(tuple(x.shape), x)).add_(in_shift)
+            pooled.append(h)
+        hs = [h]  # the input of every layer
+        for k in range(last + 1):
+            w, b = ws[k], bs[k]
+            if w.shape[2] <= NARROW:  # as _NarrowLinear
+                h = torch.baddbmm(b.transpose(1, 2), w.transpose(1, 2), h.transpose(1, 2)).transpose(1, 2)
+                h = h.contiguous()
+            else:
+                out = pool.take((h.shape[0], h.shape[1], w.shape[2]), h)
+                h = torch.baddbmm(b, h, w, out=out)
+                if k < last:
+                    pooled.append(out)
+            if k < last:
+                h = h.relu_()
+                hs.append(h)
+        if grad:  # the weights saved as such (autograd checks them for in-place changes), the layers' inputs
+            ctx.save_for_backward(in_scale, *ws)  # (ours, or the caller's x) kept as they are
+            ctx.hidden, ctx.pool, ctx.pooled = hs, pool, pooled
+            ctx.b_shapes = [b.shape for b in bs]
+            ctx.done = False
+        else:
+            for t in pooled:
+                pool.give(t)
+        return h
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g: torch.Tensor):  # type: ignore[override]
+        if ctx.done:
+            raise RuntimeError("_PooledMLP: a second backward pass through the same graph (retain_graph) is not "
+                               "supported: its activations may have been reused; set networks.POOLED = False")
+        ctx.done = True
+        in_scale, *ws = ctx.saved_tensors
+        hs, pool = ctx.hidden, ctx.pool
+        need = ctx.needs_input_grad  # x, pool, grad, in_scale, in_shift, w0, b0, w1, b1, ...
+        if need[3] or need[4]:
+            raise RuntimeError("_PooledMLP: no gradient to in_scale or in_shift (constants of the input scaling)")
+        last = len(ws) - 1
+        grads: list[torch.Tensor | None] = [None] * (2 * len(ws))
+        for k in range(last, -1, -1):
+            w, xin = ws[k], hs[k]
+            if k < last:  # g: the gradient at this layer's ReLU output, a pool buffer of ours: in place
+                y = hs[k + 1]
+                g = torch.ops.aten.threshold_backward.grad_input(g, y, 0, grad_input=g)
+            if w.shape[2] <= NARROW:  # as _NarrowLinear.backward
+                grads[2 * k] = torch.bmm(g.transpose(1, 2), xin).transpose(1, 2)
+            else:  # as autograd's baddbmm
+                grads[2 * k] = torch.bmm(xin.transpose(1, 2), g)
+            grads[2 * k + 1] = g.sum(1, keepdim=True).sum_to_size(ctx.b_shapes[k])
+            if k > 0:  # the gradient at a hidden layer's output: into a pool buffer, never returned
+                nxt = torch.bmm(g, w.transpose(1, 2), out=pool.take(tuple(xin.shape), xin))
+            elif need[0]:  # the input's gradient, returned: a tensor of its own
+                nxt = torch.bmm(g, w.transpose(1, 2))
+                if in_scale is not None:
+                    nxt = nxt.mul_(in_scale)
+            else:
+                nxt = None
+            if k < last:
+                pool.give(g)
+            g = nxt
+        for t in ctx.pooled:  # the activations, read for the last time above
+            pool.give(t)
+        ctx.hidden = ctx.pooled = None
+        return (g, None, None, None, None, *grads)
+
+
 class BatchedMLP(nn.Module):
     """``n_models`` independent MLPs evaluated together: ``[E, B, in] -> [E, B, out]`` (``E = n_models``, or
     ``len(index)``).
@@ -130,8 +273,18 @@ class BatchedMLP(nn.Module):
         """(weight ``[E, in, out]``, bias ``[E, 1, out]``) per layer, rows picked by ``index``."""
         return [(_pick(w, index), _pick(b, index)) for w, b in zip(self.weights, self.biases)]
 
-    def forward_pre(self, x: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
-        """Output before the output activation."""
+    def forward_pre(self, x: torch.Tensor, index: torch.Tensor | None = None, in_scale: torch.Tensor | None = None,
+                    in_shift: torch.Tensor | None = None) -> torch.Tensor:
+        """Output before the output activation. ``in_scale``, ``in_shift`` ``[E, 1, in]`` (both or neither): the
+        rows see ``x * in_scale + in_shift``. A per-row input ``[E, B, in]`` goes through ``_PooledMLP`` (the
+        same products, its scaled input, hidden activations and their gradients in buffers reused from call to
+        call)."""
+        if x.dim() == 3 and POOLED:
+            wb = [t for pair in self.layers(index) for t in pair]
+            grad = torch.is_grad_enabled() and (x.requires_grad or any(t.requires_grad for t in wb))
+            return _PooledMLP.apply(x, _pool_of(self), grad, in_scale, in_shift, *wb)
+        if in_scale is not None:
+            x = x * in_scale + in_shift
         layers = self.layers(index)
         last = len(layers) - 1
         for k, (w, b) in enumerate(layers):
@@ -140,8 +293,9 @@ class BatchedMLP(nn.Module):
                 x = x.relu_()  # in place: relu's backward reads its output, which nothing else holds
         return x
 
-    def forward(self, x: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
-        y = self.forward_pre(x, index)
+    def forward(self, x: torch.Tensor, index: torch.Tensor | None = None, in_scale: torch.Tensor | None = None,
+                in_shift: torch.Tensor | None = None) -> torch.Tensor:
+        y = self.forward_pre(x, index, in_scale, in_shift)
         return torch.tanh(y) if self.out_act == "tanh" else y
 
     # -- the per-agent Actor contract -----------------------------------------------------------------

@@ -75,7 +75,7 @@ class RoleCriticMADDPG(MADDPG):
         self.critics_tgt = RoleCritics(t * nr, in_dim, cfg.critic_hidden, heads, g).to(dev)
         self.critics_tgt.load_state_dict(self.critics.state_dict())
         self.critics_tgt.requires_grad_(False)
-        self.critic_opt = adam(self.critics.parameters(), cfg.critic_lr)
+        self.critic_opt = adam(self.critics, cfg.critic_lr, self.critics_tgt)
         # agent i of twin k reads model k x R + role_of[i], head head_of[i]
         self._q_model = torch.tensor([k * nr + role_of[i] for k in range(t) for i in range(n)], device=dev)
         self._q_head = torch.tensor(head_of * t, device=dev)
@@ -133,7 +133,7 @@ class RoleCriticMADDPG(MADDPG):
                          teach: torch.Tensor | None, imitation: bool, w_bc: float) -> dict[str, float]:
         cfg = self.cfg
         k, n, nr = obs.shape[0], self.n_agents, self.n_roles
-        pre = self.actors.forward_pre(self.actor_input(obs.transpose(0, 1)), self._actor_ix)  # [N, K, 2]
+        pre = self.actors.forward_pre(obs.transpose(0, 1), self._actor_ix, self._in_scale, self._in_shift)
         mu = torch.tanh(pre)
         extra: dict[str, float] = {}
         bc_n = None

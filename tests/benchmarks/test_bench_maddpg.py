@@ -67,11 +67,12 @@ def _old_clip(params, max_norm):
     return norms
 
 
-def _old_adam(params, lr):
-    return torch.optim.Adam(params, lr=lr)
+def _old_adam(online, lr, target=None):
+    return torch.optim.Adam(online.parameters(), lr=lr)
 
 
-def _old_forward_pre(self, x, index=None):
+def _old_forward_pre(self, x, index=None, in_scale=None, in_shift=None):
+    assert in_scale is None  # the `before` row: no input scaling (the default config)
     layers = self.layers(index)
     for k, (w, b) in enumerate(layers):
         x = torch.matmul(x, w) + b
@@ -185,7 +186,7 @@ if __name__ == "__main__":
             with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
                 for _ in range(10):
                     agent.update(batch)
-        print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=15,
+        print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=int(__import__("os").environ.get("ROWS", 15)),
                                                                  max_name_column_width=30))
         raise SystemExit(0)
     out = interleaved(args.rounds)
