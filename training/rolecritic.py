@@ -24,7 +24,8 @@ from torch import nn
 
 from runtime.spec import SwarmSpec
 from training.config import TrainConfig
-from training.maddpg import MADDPG, adam, clip_grad_norm_per_agent, global_state, global_state_dim, soft_update
+from training import maddpg
+from training.maddpg import MADDPG, clip_grad_norm_per_agent, global_state, global_state_dim, soft_update
 from training.networks import BatchedMLP, shared_linear
 
 
@@ -75,7 +76,7 @@ class RoleCriticMADDPG(MADDPG):
         self.critics_tgt = RoleCritics(t * nr, in_dim, cfg.critic_hidden, heads, g).to(dev)
         self.critics_tgt.load_state_dict(self.critics.state_dict())
         self.critics_tgt.requires_grad_(False)
-        self.critic_opt = adam(self.critics, cfg.critic_lr, self.critics_tgt)
+        self.critic_opt = maddpg.adam(self.critics, cfg.critic_lr, self.critics_tgt)
         # agent i of twin k reads model k x R + role_of[i], head head_of[i]
         self._q_model = torch.tensor([k * nr + role_of[i] for k in range(t) for i in range(n)], device=dev)
         self._q_head = torch.tensor(head_of * t, device=dev)

@@ -12,6 +12,9 @@ run.
 - ``role``, ``role_share``: ``train.critic = "role"`` (one critic per role with a head per agent,
   ``training.rolecritic``), without and with ``train.share_params``;
 - ``shipped``: the learner settings of configs/role_based.toml (64-64 role critics since issue 13's eighth attempt);
+- ``shipped_unpooled``: ``shipped`` without the reused activation buffers (``training.networks._PooledMLP``) and
+  the flat parameters (``training.maddpg.FlatAdam``): per-tensor fused Adam, every layer through ``shared_linear``
+  (the same values bit for bit);
 - ``shipped_c128``: the same with the 128-128 critics it shipped with until then.
 
 Target (issue 13): a fast option >= 3x ``before``.
@@ -45,7 +48,7 @@ VARIANTS = {
     "role": {"critic": "role"},
     "role_share": {"critic": "role", "share_params": True},
 }
-SHIPPED = {"shipped": {}, "shipped_c128": {"critic_hidden": (128, 128)}}
+SHIPPED = {"shipped": {}, "shipped_unpooled": {}, "shipped_c128": {"critic_hidden": (128, 128)}}
 """Variants on configs/role_based.toml's learner settings (the rows above: on the default config's)."""
 ALL = [*VARIANTS, *SHIPPED]
 
@@ -89,13 +92,19 @@ def one_thread():
     torch.set_num_threads(old)
 
 
+def _unflat_adam(online, lr, target=None):
+    return torch.optim.Adam(online.parameters(), lr=lr, fused=True)
+
+
 @contextlib.contextmanager
-def _as_before(enabled: bool):
-    """The learner's helpers as they were when issue 13 was filed, while the block runs (the ``before`` row):
-    Adam is chosen when a learner is built, the rest at every call."""
-    patches = [(networks, "shared_matmul", torch.matmul), (maddpg, "soft_update", _old_soft_update),
-               (maddpg, "clip_grad_norm_per_agent", _old_clip), (maddpg, "adam", _old_adam),
-               (networks.BatchedMLP, "forward_pre", _old_forward_pre)] if enabled else []
+def _as_before(variant: str):
+    """While the block runs, the learner's helpers as they were when issue 13 was filed (the ``before`` row), or
+    without this session's buffers and flat parameters (``shipped_unpooled``); Adam is chosen when a learner is
+    built, the rest at every call."""
+    patches = {"before": [(networks, "shared_matmul", torch.matmul), (maddpg, "soft_update", _old_soft_update),
+                          (maddpg, "clip_grad_norm_per_agent", _old_clip), (maddpg, "adam", _old_adam),
+                          (networks.BatchedMLP, "forward_pre", _old_forward_pre)],
+               "shipped_unpooled": [(networks, "POOLED", False), (maddpg, "adam", _unflat_adam)]}.get(variant, [])
     saved = [(obj, name, getattr(obj, name)) for obj, name, _ in patches]
     for obj, name, new in patches:
         setattr(obj, name, new)
@@ -107,8 +116,7 @@ def _as_before(enabled: bool):
 
 
 def _learner(variant: str):
-    """(learner, batch) of a variant, warmed by 3 updates; build and call it inside ``_as_before(variant ==
-    "before")``."""
+    """(learner, batch) of a variant, warmed by 3 updates; build and call it inside ``_as_before(variant)``."""
     if variant in SHIPPED:
         shipped = ExperimentConfig.from_toml(ROOT / "configs" / "role_based.toml")
         spec, tc = shipped.spec, dataclasses.replace(shipped.train, threads=1, **SHIPPED[variant])
@@ -130,7 +138,7 @@ def _learner(variant: str):
 @pytest.mark.benchmark(group="maddpg_update_role_based_batch256")
 @pytest.mark.parametrize("variant", ALL)
 def test_update(benchmark, variant, one_thread):
-    with _as_before(variant == "before"):
+    with _as_before(variant):
         agent, batch = _learner(variant)
         losses = benchmark(agent.update, batch)
     assert np.isfinite(losses["critic_loss"])
@@ -139,14 +147,16 @@ def test_update(benchmark, variant, one_thread):
         benchmark.extra_info["updates_per_s_best"] = 1.0 / benchmark.stats.stats.min
 
 
-def interleaved(rounds: int, seed: int = 0) -> dict:
+def interleaved(rounds: int, seed: int = 0, block: int = 1) -> dict:
     """Every variant's update timed once per round, the variants in a new random order each round, so that a
     stretch of a busy machine slows all of them alike: per variant the median time and the median over rounds of
-    ``before``'s time in that round over the variant's (a paired ratio)."""
+    ``before``'s time in that round over the variant's (a paired ratio). ``block`` > 1: each variant runs that
+    many updates back to back per round (as a training does, its memory and caches its own) and the round's
+    time is their median."""
     torch.set_num_threads(1)
     made = {}
     for v in ALL:
-        with _as_before(v == "before"):
+        with _as_before(v):
             made[v] = _learner(v)
     order = list(ALL)
     rng = random.Random(seed)
@@ -155,10 +165,13 @@ def interleaved(rounds: int, seed: int = 0) -> dict:
         rng.shuffle(order)
         for v in order:
             agent, batch = made[v]
-            with _as_before(v == "before"):
-                t0 = time.perf_counter()
-                agent.update(batch)
-                times[v].append(time.perf_counter() - t0)
+            with _as_before(v):
+                ts = []
+                for _ in range(block):
+                    t0 = time.perf_counter()
+                    agent.update(batch)
+                    ts.append(time.perf_counter() - t0)
+                times[v].append(float(np.median(ts)))
     before = np.array(times["before"])
     out = {}
     for v, t in times.items():
@@ -166,7 +179,7 @@ def interleaved(rounds: int, seed: int = 0) -> dict:
         out[v] = {"median_ms": float(ms[1]), "p25_ms": float(ms[0]), "p75_ms": float(ms[2]),
                   "ratio_to_before_median": float(ratio[1]), "ratio_to_before_p25": float(ratio[0]),
                   "ratio_to_before_p75": float(ratio[2])}
-    return {"rounds": rounds, "variants": out}
+    return {"rounds": rounds, "block": block, "variants": out}
 
 
 if __name__ == "__main__":
@@ -174,6 +187,8 @@ if __name__ == "__main__":
                                  "random order each round; per variant the median time and the median paired "
                                  "ratio to the `before` learner of the same round.")
     ap.add_argument("--rounds", type=int, default=300, help="rounds (each times every variant once)")
+    ap.add_argument("--block", type=int, default=1, help="updates of a variant back to back per round (the "
+                    "round's time: their median)")
     ap.add_argument("--json", type=Path, help="also write the figures here")
     ap.add_argument("--profile", metavar="VARIANT", choices=ALL,
                     help="instead: torch.profiler's table of 10 updates of this variant, by self CPU time")
@@ -181,7 +196,7 @@ if __name__ == "__main__":
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
         torch.set_num_threads(1)
-        with _as_before(args.profile == "before"):
+        with _as_before(args.profile):
             agent, batch = _learner(args.profile)
             with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
                 for _ in range(10):
@@ -189,7 +204,7 @@ if __name__ == "__main__":
         print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=int(__import__("os").environ.get("ROWS", 15)),
                                                                  max_name_column_width=30))
         raise SystemExit(0)
-    out = interleaved(args.rounds)
+    out = interleaved(args.rounds, block=args.block)
     print(f"{'variant':14s} {'median ms':>10s} {'p25-p75 ms':>14s} {'x before (paired median, p25-p75)':>36s}")
     for v, r in out["variants"].items():
         print(f"{v:14s} {r['median_ms']:10.2f} {r['p25_ms']:6.2f}-{r['p75_ms']:<7.2f} "
