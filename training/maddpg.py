@@ -7,7 +7,10 @@ scout with the Voronoi term, evader), which the env computes; the critics exist 
 Speed: the ``N`` agents' networks are stacked into one module with per-agent weights ``[N, in, out]`` and
 evaluated with one batched matmul per layer (``BatchedMLP``); losses are summed over agents, so one Adam
 step over the stacked tensors is exactly N independent Adam steps (Adam is element-wise), and gradient
-clipping is applied per agent (``clip_grad_norm_per_agent``).
+clipping is applied per agent (``clip_grad_norm_per_agent``). The actors' and the critics' tensors live in one
+buffer each (``FlatAdam``: Adam, zeroing the gradients and the soft target update are one call), and the
+actors' activations in buffers reused from update to update (``training.networks._PooledMLP``); both compute
+the same values bit for bit as the straightforward forms (``tests/test_learner_speed.py``).
 
 Observations arrive zero-padded to ``D = spec.max_obs_dim``; an actor's weights on its padding columns see
 only zero inputs, so they never matter and are dropped by ``BatchedMLP.to_actors`` when the per-agent

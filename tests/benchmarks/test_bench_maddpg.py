@@ -191,13 +191,24 @@ if __name__ == "__main__":
                     "round's time: their median)")
     ap.add_argument("--json", type=Path, help="also write the figures here")
     ap.add_argument("--profile", metavar="VARIANT", choices=ALL,
-                    help="instead: torch.profiler's table of 10 updates of this variant, by self CPU time")
+                    help="instead: this variant's time and minor page faults per update, and torch.profiler's "
+                    "table of 10 updates, by self CPU time (ROWS=N in the environment: N rows, default 15)")
     args = ap.parse_args()
     if args.profile:
+        import resource
+
         from torch.profiler import ProfilerActivity, profile
         torch.set_num_threads(1)
         with _as_before(args.profile):
             agent, batch = _learner(args.profile)
+            for _ in range(30):
+                agent.update(batch)
+            faults, t0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt, time.perf_counter()
+            for _ in range(100):
+                agent.update(batch)
+            print(f"{args.profile}: {10 * (time.perf_counter() - t0):.2f} ms per update, "
+                  f"{(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults) / 100:.1f} minor page faults per "
+                  "update (100 updates after 30, back to back)")
             with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
                 for _ in range(10):
                     agent.update(batch)
