@@ -5,6 +5,8 @@ the straightforward forms written out here, over several updates of every learne
 with and without TD3+BC, imitation update, cloning step)."""
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 import torch
 
@@ -59,9 +61,15 @@ def _reference_global_state(spec, obs):
     return torch.cat([pv[..., :2].reshape(k, -1), pv[..., 2:].reshape(k, -1), obst.reshape(k, -1)], dim=1)
 
 
-def _run(cfg: ExperimentConfig) -> tuple[list[dict[str, float]], dict[str, torch.Tensor]]:
+def _config(variant: str) -> ExperimentConfig:
+    return ExperimentConfig.from_dict({"name": "t", "spec": {"team": {"n_pursuers": 3, "n_scouts": 2,
+                                                                     "n_evaders": 1}},
+                                      "train": {"batch_size": 48, "threads": 1, **VARIANTS[variant]}})
+
+
+def _run(cfg: ExperimentConfig) -> tuple[list[dict[str, float]], dict[str, torch.Tensor], Any]:
     """Four updates (the third an imitation update) and one cloning step from the same seed and batches;
-    the losses returned and every learned tensor after them."""
+    the losses returned, every learned tensor after them and the learner."""
     agent = make_learner(cfg.spec, cfg.train)
     n, d, k = cfg.spec.n_agents, cfg.spec.max_obs_dim, 48
     g = torch.Generator().manual_seed(3)
@@ -79,22 +87,20 @@ def _run(cfg: ExperimentConfig) -> tuple[list[dict[str, float]], dict[str, torch
     tensors = {}
     for name in ("actors", "critics", "actors_tgt", "critics_tgt"):
         tensors.update({f"{name}.{key}": v.detach().clone() for key, v in getattr(agent, name).state_dict().items()})
-    return out, tensors
+    return out, tensors, agent
 
 
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_updates_equal_the_straightforward_forms(variant, monkeypatch):
     torch.set_num_threads(1)
-    cfg = ExperimentConfig.from_dict({"name": "t", "spec": {"team": {"n_pursuers": 3, "n_scouts": 2,
-                                                                     "n_evaders": 1}},
-                                      "train": {"batch_size": 48, "threads": 1, **VARIANTS[variant]}})
-    fast_losses, fast = _run(cfg)
+    cfg = _config(variant)
+    fast_losses, fast, _ = _run(cfg)
     with monkeypatch.context() as m:
         m.setattr(networks.BatchedMLP, "forward_pre", _reference_forward_pre)
         m.setattr(maddpg, "global_state", _reference_global_state)
         m.setattr(rolecritic, "global_state", _reference_global_state)
         m.setattr(rolecritic.RoleCritics, "forward_split", _reference_forward_split)
-        ref_losses, ref = _run(cfg)
+        ref_losses, ref, _ = _run(cfg)
     assert len(fast_losses) == len(ref_losses) == 5
     for got, want in zip(fast_losses, ref_losses):
         assert got.keys() == want.keys()
@@ -218,58 +224,49 @@ def test_pool_keeps_a_bounded_number_of_tensors():
     assert not any(x.is_inference() for v in pool._free.values() for x in v)
 
 
-def _learner_run(cfg, monkeypatch, fast: bool):
-    """Six updates (an imitation one among them) and two cloning steps; every learned tensor, the optimizers'
-    states and the losses. ``fast``: as shipped; else per-tensor fused Adam, per-tensor soft updates and the
-    layer-by-layer MLP."""
-    with monkeypatch.context() as m:
-        if not fast:
-            m.setattr(networks, "POOLED", False)
-            m.setattr(maddpg, "adam", lambda online, lr, target=None: torch.optim.Adam(online.parameters(), lr=lr,
-                                                                                     fused=True))
-        agent = make_learner(cfg.spec, cfg.train)
-        n, d, k = cfg.spec.n_agents, cfg.spec.max_obs_dim, 40
-        g = torch.Generator().manual_seed(5)
-        losses = []
-        for step in range(6):
-            teach = torch.rand(k, n, 2, generator=g) * 2 - 1
-            batch = (torch.randn(k, n, d, generator=g), torch.rand(k, n, 2, generator=g) * 2 - 1,
-                     torch.randn(k, n, generator=g), torch.randn(k, n, d, generator=g),
-                     torch.full((k, n, 2), float("nan")), teach)
-            losses.append(agent.update(batch, imitation=step == 1))
-            if step in (2, 4):
-                losses.append({"clone": agent.clone_step(batch[0], teach)})
-        tensors = {f"{name}.{key}": v.detach().clone() for name in ("actors", "critics", "actors_tgt", "critics_tgt")
-                   for key, v in getattr(agent, name).state_dict().items()}
-        return losses, tensors, agent.state_dict()
-
-
 @pytest.mark.parametrize("variant", ["shipped", "default", "role_matd3"])
 def test_flat_adam_and_pooled_mlp_train_bit_for_bit_like_per_tensor_adam(variant, monkeypatch):
     """The learner as it runs (``FlatAdam`` on flat parameters, one-call soft updates, ``_PooledMLP``) gives
     exactly the weights, losses and Adam moments of per-tensor fused Adam, per-tensor soft updates and the
     layer-by-layer MLP; its optimizer ``state_dict`` has that optimizer's layout, and each loads the other's."""
     torch.set_num_threads(1)
-    cfg = ExperimentConfig.from_dict({"name": "t", "spec": {"team": {"n_pursuers": 3, "n_scouts": 2,
-                                                                     "n_evaders": 1}},
-                                      "train": {"batch_size": 40, "threads": 1, **VARIANTS[variant]}})
-    fast_losses, fast, fast_sd = _learner_run(cfg, monkeypatch, True)
-    ref_losses, ref, ref_sd = _learner_run(cfg, monkeypatch, False)
+    cfg = _config(variant)
+    fast_losses, fast, fast_agent = _run(cfg)
+    with monkeypatch.context() as m:  # per-tensor fused Adam, per-tensor soft updates, layer by layer
+        m.setattr(networks, "POOLED", False)
+        m.setattr(maddpg, "adam", lambda online, lr, target=None: torch.optim.Adam(online.parameters(), lr=lr,
+                                                                                 fused=True))
+        ref_losses, ref, ref_agent = _run(cfg)
+    assert isinstance(fast_agent.actor_opt, maddpg.FlatAdam) and isinstance(ref_agent.actor_opt, torch.optim.Adam)
+    fast_sd, ref_sd = fast_agent.state_dict(), ref_agent.state_dict()
     assert fast_losses == ref_losses
     assert fast.keys() == ref.keys() and all(torch.equal(fast[key], ref[key]) for key in ref)
     for opt in ("actor_opt", "critic_opt"):
         a, b = fast_sd[opt], ref_sd[opt]
-        assert [{k: v for k, v in grp.items() if k != "fused"} for grp in a["param_groups"]] == \
-            [{k: v for k, v in grp.items() if k != "fused"} for grp in b["param_groups"]]
+        assert a["param_groups"] == b["param_groups"]
         assert a["state"].keys() == b["state"].keys() and len(a["state"]) > 0
         for i in b["state"]:
             assert a["state"][i].keys() == b["state"][i].keys()
             assert all(torch.equal(a["state"][i][key], b["state"][i][key]) for key in b["state"][i])
-    # a per-tensor state loads into the flat learner and continues exactly as the flat one does
-    agent = make_learner(cfg.spec, cfg.train)
-    agent.load_state_dict(ref_sd)
-    assert agent.state_dict()["actor_opt"]["state"][0]["exp_avg"].shape == ref_sd["actor_opt"]["state"][0][
-        "exp_avg"].shape
+    # each state loads into the other kind of learner, and all four continue with the same update
+    flat_from_ref = make_learner(cfg.spec, cfg.train)
+    flat_from_ref.load_state_dict(ref_sd)
+    with monkeypatch.context() as m:
+        m.setattr(networks, "POOLED", False)
+        m.setattr(maddpg, "adam", lambda online, lr, target=None: torch.optim.Adam(online.parameters(), lr=lr,
+                                                                                 fused=True))
+        ref_from_flat = make_learner(cfg.spec, cfg.train)
+    ref_from_flat.load_state_dict(fast_sd)
+    n, d, k = cfg.spec.n_agents, cfg.spec.max_obs_dim, 48
+    g = torch.Generator().manual_seed(9)
+    batch = (torch.randn(k, n, d, generator=g), torch.rand(k, n, 2, generator=g) * 2 - 1,
+             torch.randn(k, n, generator=g), torch.randn(k, n, d, generator=g), torch.full((k, n, 2), float("nan")))
+    after = []
+    for agent in (fast_agent, ref_agent, flat_from_ref, ref_from_flat):
+        agent.update(batch)
+        after.append(torch.cat([p.detach().reshape(-1) for p in (*agent.actors.parameters(),
+                                                                 *agent.critics.parameters())]))
+    assert all(torch.equal(after[0], other) for other in after[1:])
 
 
 def test_flat_adam_takes_back_a_replaced_gradient_and_refuses_a_moved_parameter():
