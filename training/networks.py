@@ -112,9 +112,9 @@ POOLED = True
 
 class _BufferPool:
     """Tensors to reuse, by shape: what ``take`` hands out is not handed out again until it is given back. A
-    fresh ``[12, 256, 64]`` activation (786 kB) costs its first touch of new memory pages (the allocator returns
-    freed blocks of that size to the system): measured 4 x 437 us per learner update for the bias copies
-    alone, against 4 x 112 us on reused memory (BENCHMARKS.md, Learner)."""
+    fresh ``[12, 256, 64]`` activation (786 kB) costs its first touch of new memory pages (glibc hands freed
+    blocks that large back to the system): 127-162 page faults per learner update without the pool, 0.2-0.7 with
+    it; a cloning step's 3 MB activations more (BENCHMARKS.md, Learner)."""
 
     MAX_SHAPES = 16
     """Shapes kept at most (the oldest dropped first): a caller whose batch size changes at every call does not
