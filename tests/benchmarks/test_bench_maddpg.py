@@ -97,7 +97,7 @@ def _unflat_adam(online, lr, target=None):
 
 
 @contextlib.contextmanager
-def _as_before(variant: str):
+def _patched(variant: str):
     """While the block runs, the learner's helpers as they were when issue 13 was filed (the ``before`` row), or
     without this session's buffers and flat parameters (``shipped_unpooled``); Adam is chosen when a learner is
     built, the rest at every call."""
@@ -116,7 +116,7 @@ def _as_before(variant: str):
 
 
 def _learner(variant: str):
-    """(learner, batch) of a variant, warmed by 3 updates; build and call it inside ``_as_before(variant)``."""
+    """(learner, batch) of a variant, warmed by 3 updates; build and call it inside ``_patched(variant)``."""
     if variant in SHIPPED:
         shipped = ExperimentConfig.from_toml(ROOT / "configs" / "role_based.toml")
         spec, tc = shipped.spec, dataclasses.replace(shipped.train, threads=1, **SHIPPED[variant])
@@ -138,7 +138,7 @@ def _learner(variant: str):
 @pytest.mark.benchmark(group="maddpg_update_role_based_batch256")
 @pytest.mark.parametrize("variant", ALL)
 def test_update(benchmark, variant, one_thread):
-    with _as_before(variant):
+    with _patched(variant):
         agent, batch = _learner(variant)
         losses = benchmark(agent.update, batch)
     assert np.isfinite(losses["critic_loss"])
@@ -156,7 +156,7 @@ def interleaved(rounds: int, seed: int = 0, block: int = 1) -> dict:
     torch.set_num_threads(1)
     made = {}
     for v in ALL:
-        with _as_before(v):
+        with _patched(v):
             made[v] = _learner(v)
     order = list(ALL)
     rng = random.Random(seed)
@@ -165,7 +165,7 @@ def interleaved(rounds: int, seed: int = 0, block: int = 1) -> dict:
         rng.shuffle(order)
         for v in order:
             agent, batch = made[v]
-            with _as_before(v):
+            with _patched(v):
                 ts = []
                 for _ in range(block):
                     t0 = time.perf_counter()
@@ -199,7 +199,7 @@ if __name__ == "__main__":
 
         from torch.profiler import ProfilerActivity, profile
         torch.set_num_threads(1)
-        with _as_before(args.profile):
+        with _patched(args.profile):
             agent, batch = _learner(args.profile)
             for _ in range(30):
                 agent.update(batch)
