@@ -28,7 +28,11 @@ def _reference_forward_split(self, state, act):
     """``RoleCritics.forward_split`` as one MLP call on the concatenated input, rows picked by model number."""
     e, k = act.shape[0], act.shape[1]
     x = torch.cat([state.unsqueeze(0).expand(e, k, state.shape[1]), act], dim=2)
-    return self.mlp(x, torch.arange(e))
+    self.requires_grad_(False)  # the gradient to the actions only
+    try:
+        return self.mlp(x, torch.arange(e))
+    finally:
+        self.requires_grad_(True)
 
 
 def _reference_forward_pre(self, x, index=None, in_scale=None, in_shift=None):

@@ -28,6 +28,7 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 import torch
+import torch.optim.optimizer as _optim
 from torch import nn
 
 from runtime.avoidance import avoid_agents
@@ -137,6 +138,13 @@ def clip_grad_norm_per_agent(params: Sequence[torch.Tensor], max_norm: float) ->
     return norms
 
 
+def _params_of(module: nn.Module, opt: Any) -> list[torch.Tensor]:
+    """``list(module.parameters())``, from the optimizer's ``FlatParams`` when it has them (the same list, made
+    once: walking the module's tree is a noticeable share of a small update)."""
+    flat = getattr(opt, "flat", None)
+    return flat.params if flat is not None else list(module.parameters())
+
+
 class FlatParams:
     """Every parameter of ``module`` moved into one contiguous buffer ``data`` (each parameter a view of it, in
     ``module.parameters()`` order), and with ``grads`` every gradient into ``grad`` likewise (each ``p.grad`` a
@@ -206,7 +214,25 @@ class FlatAdam:
     def step(self) -> None:
         self.flat.sync_grads()
         self.param.grad = self.flat.grad
-        self.opt.step()
+        st = self.opt.state.get(self.param)
+        if not st:  # the first step: the optimizer makes its state (moments, step count) as it likes it
+            self.opt.step()
+            return
+        # then what torch.optim.Adam(fused=True).step() calls (torch/optim/adam.py, _fused_adam), without its
+        # Python around it (hooks, profiler records, grouping by device): the same kernel on the same tensors
+        g = self.opt.param_groups[0]
+        if g["amsgrad"] or g["maximize"] or g["weight_decay"] or g.get("decoupled_weight_decay") or \
+                isinstance(g["lr"], torch.Tensor) or self.opt._optimizer_step_pre_hooks or \
+                self.opt._optimizer_step_post_hooks or _optim._global_optimizer_pre_hooks or \
+                _optim._global_optimizer_post_hooks:
+            self.opt.step()
+            return
+        step = st["step"]
+        step.add_(1)
+        beta1, beta2 = g["betas"]
+        torch._fused_adam_([self.param], [self.flat.grad], [st["exp_avg"]], [st["exp_avg_sq"]], [], [step],
+                           amsgrad=False, lr=g["lr"], beta1=beta1, beta2=beta2, weight_decay=0.0, eps=g["eps"],
+                           maximize=False, grad_scale=None, found_inf=None)
 
     def state_dict(self) -> dict[str, Any]:
         """``torch.optim.Adam``'s layout over the module's parameters (the moments split per parameter)."""
@@ -263,23 +289,27 @@ def global_state_dim(spec: SwarmSpec) -> int:
     return 4 * spec.n_agents + 3 * spec.layout(spec.roles[0])["obstacles"].rows
 
 
-_COLUMNS: dict[tuple[int, str], tuple[SwarmSpec, torch.Tensor, Any]] = {}
+_COLUMNS: dict[tuple[int, str], tuple[SwarmSpec, torch.Tensor, Any, int]] = {}
 
 
-def _global_state_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, Any]:
-    """``global_state``'s observation columns of every agent's position and velocity ``[N, 4]`` and the obstacle
-    block's layout, built once per spec and device (the spec's layouts and a new index tensor cost more than
-    the gather itself on a learner's batch)."""
+def _global_state_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, Any, int]:
+    """``global_state``'s columns of every agent's position then every agent's velocity in a flattened joint
+    observation ``[4 N]`` (agent i's column c at ``i x max_obs_dim + c``), the obstacle block's layout and
+    ``spec.max_obs_dim``, built once per spec and device (the spec's layouts and a new index tensor cost more
+    than the gather itself on a learner's batch)."""
     key = (id(spec), str(device))
     hit = _COLUMNS.get(key)
     if hit is None or hit[0] is not spec:  # the spec is kept in the entry, so its id is not reused meanwhile
-        cols = []
-        for role in spec.roles:
+        d = spec.max_obs_dim
+        pos, vel = [], []
+        for i, role in enumerate(spec.roles):
             lay = spec.layout(role)
             sp, sv = lay["self_pos"].start, lay["self_vel"].start
-            cols.append([sp, sp + 1, sv, sv + 1])
-        hit = _COLUMNS[key] = (spec, torch.tensor(cols, device=device), spec.layout(spec.roles[0])["obstacles"])
-    return hit[1], hit[2]
+            pos += [i * d + sp, i * d + sp + 1]
+            vel += [i * d + sv, i * d + sv + 1]
+        hit = _COLUMNS[key] = (spec, torch.tensor(pos + vel, device=device),
+                               spec.layout(spec.roles[0])["obstacles"], d)
+    return hit[1], hit[2], hit[3]
 
 
 def global_state(spec: SwarmSpec, obs: torch.Tensor) -> torch.Tensor:
@@ -291,15 +321,17 @@ def global_state(spec: SwarmSpec, obs: torch.Tensor) -> torch.Tensor:
     obstacle (``sensing.n_obstacles_observed >= arena.n_obstacles``, checked by ``MADDPG``) under either
     observability: so it needs nothing beyond what the replay buffer stores, and the final observation of
     an episode (``info["final_obs"]``) gives the final state."""
-    k, n = obs.shape[0], obs.shape[1]
-    cols, ob = _global_state_columns(spec, obs.device)
-    pv = torch.gather(obs, 2, cols.unsqueeze(0).expand(k, n, 4))  # [K, N, 4]
+    k, n, d = obs.shape
+    cols, ob, width = _global_state_columns(spec, obs.device)
+    if d != width:
+        raise ValueError(f"global_state: observations of {d} columns, the spec's are {width} wide")
+    pv = obs.reshape(k, n * d).index_select(1, cols)  # [K, 4N]: positions, then velocities
     o = obs[:, 0, ob.slice].reshape(k, ob.rows, 3)
-    centre = o[..., :2] + pv[:, :1, :2]  # agent 0 sees them relative to itself
+    centre = o[..., :2] + pv[:, None, :2]  # agent 0 sees them relative to itself
     obst = torch.cat([centre, o[..., 2:]], dim=-1)
     order = centre[..., 0].argsort(dim=1)
     obst = torch.gather(obst, 1, order.unsqueeze(-1).expand(k, ob.rows, 3))
-    return torch.cat([pv[..., :2].reshape(k, -1), pv[..., 2:].reshape(k, -1), obst.reshape(k, -1)], dim=1)
+    return torch.cat([pv, obst.reshape(k, -1)], dim=1)
 
 
 OPTIONS = ("algorithm", "critic", "share_params", "obs_scaling", "obs_offset_gain")
@@ -363,7 +395,9 @@ class MADDPG:
         if cfg.evaders in ("static", "scripted"):  # scripted evaders' actions come from the trainer
             learn[spec.team.n_team:] = 0.0
         self.learn_mask = learn  # [N] 1 for agents whose actor and critic train
+        self._mean_w = learn / learn.sum()  # [N] weights of the mean over the learning agents
         self._learns = learn > 0
+        self._all_learn = bool(self._learns.all())
         # per-agent loss weights: a shared model averages over the agents it serves (sum without sharing)
         share = torch.tensor([1.0 / self.model_of.count(self.model_of[i]) for i in range(n)], device=dev)
         self._weight = learn if not cfg.share_params else learn * share
@@ -420,16 +454,25 @@ class MADDPG:
             return global_state(self.spec, obs)
         return obs.reshape(obs.shape[0], -1)
 
+    def critic_inputs(self, obs: torch.Tensor, next_obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``critic_input`` of ``obs`` and of ``next_obs`` (the global state of both in one call: it is row by
+        row, so the same values)."""
+        if self.cfg.critic in ("global", "role"):
+            both = self.critic_input(torch.cat([obs, next_obs]))
+            return both[:obs.shape[0]], both[obs.shape[0]:]
+        return self.critic_input(obs), self.critic_input(next_obs)
+
     @torch.no_grad()
-    def td_target(self, batch: Sequence[torch.Tensor]) -> torch.Tensor:
+    def td_target(self, batch: Sequence[torch.Tensor], next_state: torch.Tensor | None = None) -> torch.Tensor:
         """``y_i = r_i x reward_scale + gamma x Q'_i(S', a'_1 .. a'_N)`` for every agent ``[N, K]`` (with
         twin critics the smaller of the two ``Q'``); a ``batch`` without next actions (4 tensors) bootstraps
-        non-learning agents on a zero action."""
+        non-learning agents on a zero action. ``next_state``: ``critic_input(next_obs)`` if the caller has it."""
         rew, next_obs = batch[2], batch[3]
         k = next_obs.shape[0]
         next_act = self.target_next_actions(next_obs, batch[4] if len(batch) > 4 else None)
-        q_next = self.critics_tgt(self.critic_input(next_obs), next_act.reshape(k, -1), index=self._critic_ix,
-                                  slot=self._slot)
+        if next_state is None:
+            next_state = self.critic_input(next_obs)
+        q_next = self.critics_tgt(next_state, next_act.reshape(k, -1), index=self._critic_ix, slot=self._slot)
         if self.twins > 1:
             q_next = q_next.view(self.twins, self.n_agents, k).amin(0)
         return rew.t() * self.cfg.reward_scale + self.cfg.gamma * q_next
@@ -445,7 +488,7 @@ class MADDPG:
             c = self.cfg.target_noise_clip
             noise = torch.randn(tgt.shape, generator=self.target_gen, device=self.device) * self.cfg.target_noise
             tgt = (tgt + noise.clamp(-c, c)).clamp(-1.0, 1.0)
-        unknown = torch.where(self._learns.view(1, -1, 1), tgt, torch.zeros_like(tgt))
+        unknown = tgt if self._all_learn else torch.where(self._learns.view(1, -1, 1), tgt, torch.zeros_like(tgt))
         if stored is None:
             return unknown
         return torch.where(torch.isnan(stored), unknown, stored)
@@ -464,8 +507,8 @@ class MADDPG:
         obs, act = batch[0], batch[1]  # [K, N, D], [K, N, 2]
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
-        y = self.td_target(batch)
-        state = self.critic_input(obs)
+        state, next_state = self.critic_inputs(obs, batch[3])
+        y = self.td_target(batch, next_state)
         feat = self.critics.rows(self.critics.obs_features(state), self._critic_ix, self._slot)  # [T N, K, h1]
         q = self.critics(state, act.reshape(k, -1), feat, self._critic_ix, self._slot)
         y_rows = y if self.twins == 1 else y.repeat(self.twins, 1)
@@ -473,7 +516,7 @@ class MADDPG:
         critic_loss_n = (q - y_rows).pow(2).mean(1)  # [T N]
         self.critic_opt.zero_grad(set_to_none=True)
         (critic_loss_n * w_rows).sum().backward()
-        critic_norm = clip_grad_norm_per_agent(list(self.critics.parameters()), cfg.grad_clip)
+        critic_norm = clip_grad_norm_per_agent(_params_of(self.critics, self.critic_opt), cfg.grad_clip)
         self.critic_opt.step()
         self.updates += 1
         if cfg.algorithm != "matd3" or self.updates % cfg.policy_delay == 0:
@@ -482,7 +525,7 @@ class MADDPG:
             self._last_actor = self._actor_step(obs, act, state, feat[:n].detach(), teach, imitation, w_bc)
             soft_update(self.actors_tgt, self.actors, cfg.tau)
             soft_update(self.critics_tgt, self.critics, cfg.tau)
-        w = self.learn_mask / self.learn_mask.sum()
+        w = self._mean_w
         return {**self._last_actor, "critic_loss": float((critic_loss_n.detach()[:n] * w).sum()),
                 "q_mean": float(q.detach()[:n].mean()), "critic_grad_norm": float(critic_norm.mean())}
 
@@ -523,9 +566,9 @@ class MADDPG:
             actor_loss_n = actor_loss_n + cfg.int8_robustness * robust_n
         self.actor_opt.zero_grad(set_to_none=True)
         (actor_loss_n * self._weight).sum().backward()
-        actor_norm = clip_grad_norm_per_agent(list(self.actors.parameters()), cfg.grad_clip)
+        actor_norm = clip_grad_norm_per_agent(_params_of(self.actors, self.actor_opt), cfg.grad_clip)
         self.actor_opt.step()
-        w = self.learn_mask / self.learn_mask.sum()
+        w = self._mean_w
         if cfg.int8_robustness > 0:
             extra["int8_sensitivity"] = float((robust_n.detach() * w).sum())
         return {**extra, "actor_loss": float((actor_loss_n.detach() * w).sum()),
@@ -563,7 +606,7 @@ class MADDPG:
         loss_n = bc_n + cfg.action_reg * pre.pow(2).mean((1, 2))
         self.actor_opt.zero_grad(set_to_none=True)
         (loss_n * self._weight).sum().backward()
-        clip_grad_norm_per_agent(list(self.actors.parameters()), cfg.grad_clip)
+        clip_grad_norm_per_agent(_params_of(self.actors, self.actor_opt), cfg.grad_clip)
         self.actor_opt.step()
         return float((bc_n.detach() * self.learn_mask).sum() / self.learn_mask.sum())
 

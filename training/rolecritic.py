@@ -25,7 +25,7 @@ from torch import nn
 from runtime.spec import SwarmSpec
 from training.config import TrainConfig
 from training import maddpg
-from training.maddpg import MADDPG, clip_grad_norm_per_agent, global_state, global_state_dim, soft_update
+from training.maddpg import MADDPG, _params_of, clip_grad_norm_per_agent, global_state, global_state_dim, soft_update
 from training.networks import BatchedMLP, shared_linear
 
 
@@ -44,9 +44,11 @@ class RoleCritics(nn.Module):
         """Models ``0 .. E-1`` (twin 0 of each role) on the inputs ``[state, act[e]]``: ``state`` ``[B, S]``
         shared by the rows, ``act`` ``[E, B, A]`` per row -> ``[E, B, heads]``. The first layer is split into
         its state part (one GEMM for every row) and its action part, so that a gradient to the actions (the
-        actor step) never goes through the state's columns."""
+        actor step) never goes through the state's columns. The weights are read detached: the actor step's
+        gradient goes to the actions only, never into the critic's parameters."""
         e, s = act.shape[0], state.shape[1]
-        weights, biases = list(self.mlp.weights), list(self.mlp.biases)
+        ws, bs = self.mlp.tensors()
+        weights, biases = [w.detach() for w in ws], [b.detach() for b in bs]
         w1 = weights[0][:e]
         h = torch.baddbmm(shared_linear(state, w1[:, :s], biases[0][:e]), act, w1[:, s:]).relu_()
         last = len(weights) - 1
@@ -80,25 +82,29 @@ class RoleCriticMADDPG(MADDPG):
         # agent i of twin k reads model k x R + role_of[i], head head_of[i]
         self._q_model = torch.tensor([k * nr + role_of[i] for k in range(t) for i in range(n)], device=dev)
         self._q_head = torch.tensor(head_of * t, device=dev)
+        self._q_index = {k: (self._q_model[:k * n], self._q_head[:k * n]) for k in range(1, t + 1)}  # by twins
         member = torch.zeros(nr, n, dtype=torch.bool)
         member[role_of, torch.arange(n)] = True
         self._member = member.to(dev)  # [R, N]: agent i belongs to role r
         self._role_of = torch.tensor(role_of, device=dev)
+        self._mine = (self._member & self._learns.view(1, -1)).view(nr, 1, n, 1)  # [R, 1, N, 1]: r's learners
 
     def critic_input(self, obs: torch.Tensor) -> torch.Tensor:
         return global_state(self.spec, obs)
 
     def _per_agent(self, q: torch.Tensor, twins: int) -> torch.Tensor:
         """Critic outputs ``[twins x R, B, heads]`` -> each agent's own value ``[twins x N, B]``."""
-        n = self.n_agents
-        return q[self._q_model[:twins * n], :, self._q_head[:twins * n]]
+        ix = self._q_index[twins]
+        return q[ix[0], :, ix[1]]
 
     @torch.no_grad()
-    def td_target(self, batch: Sequence[torch.Tensor]) -> torch.Tensor:
+    def td_target(self, batch: Sequence[torch.Tensor], next_state: torch.Tensor | None = None) -> torch.Tensor:
         rew, next_obs = batch[2], batch[3]
         k = next_obs.shape[0]
         next_act = self.target_next_actions(next_obs, batch[4] if len(batch) > 4 else None)
-        x = torch.cat([self.critic_input(next_obs), next_act.reshape(k, -1)], dim=1)
+        if next_state is None:
+            next_state = self.critic_input(next_obs)
+        x = torch.cat([next_state, next_act.reshape(k, -1)], dim=1)
         q_next = self._per_agent(self.critics_tgt(x), self.twins)  # [T N, K]
         if self.twins > 1:
             q_next = q_next.view(self.twins, self.n_agents, k).amin(0)
@@ -109,15 +115,15 @@ class RoleCriticMADDPG(MADDPG):
         obs, act = batch[0], batch[1]
         cfg = self.cfg
         k, n = obs.shape[0], self.n_agents
-        y = self.td_target(batch)
-        state = self.critic_input(obs)
+        state, next_state = self.critic_inputs(obs, batch[3])
+        y = self.td_target(batch, next_state)
         q = self._per_agent(self.critics(torch.cat([state, act.reshape(k, -1)], dim=1)), self.twins)
         y_rows = y if self.twins == 1 else y.repeat(self.twins, 1)
         w_rows = self._weight if self.twins == 1 else self._weight.repeat(self.twins)
         critic_loss_n = (q - y_rows).pow(2).mean(1)
         self.critic_opt.zero_grad(set_to_none=True)
         (critic_loss_n * w_rows).sum().backward()
-        critic_norm = clip_grad_norm_per_agent(list(self.critics.parameters()), cfg.grad_clip)
+        critic_norm = clip_grad_norm_per_agent(_params_of(self.critics, self.critic_opt), cfg.grad_clip)
         self.critic_opt.step()
         self.updates += 1
         if cfg.algorithm != "matd3" or self.updates % cfg.policy_delay == 0:
@@ -126,7 +132,7 @@ class RoleCriticMADDPG(MADDPG):
             self._last_actor = self._role_actor_step(obs, act, state, teach, imitation, w_bc)
             soft_update(self.actors_tgt, self.actors, cfg.tau)
             soft_update(self.critics_tgt, self.critics, cfg.tau)
-        w = self.learn_mask / self.learn_mask.sum()
+        w = self._mean_w
         return {**self._last_actor, "critic_loss": float((critic_loss_n.detach()[:n] * w).sum()),
                 "q_mean": float(q.detach()[:n].mean()), "critic_grad_norm": float(critic_norm.mean())}
 
@@ -146,13 +152,8 @@ class RoleCriticMADDPG(MADDPG):
                 raise ValueError("an imitation update needs the batch's teacher actions (train.teacher)")
             loss_n = bc_n
         else:
-            mine = (self._member & self._learns.view(1, -1)).view(nr, 1, n, 1)  # [R, 1, N, 1]
-            joint = torch.where(mine, mu.transpose(0, 1).unsqueeze(0), act.unsqueeze(0))  # [R, K, N, 2]
-            self.critics.requires_grad_(False)
-            try:
-                q_pi = self._per_agent(self.critics.forward_split(state, joint.reshape(nr, k, 2 * n)), 1)  # twin 0
-            finally:
-                self.critics.requires_grad_(True)
+            joint = torch.where(self._mine, mu.transpose(0, 1).unsqueeze(0), act.unsqueeze(0))  # [R, K, N, 2]
+            q_pi = self._per_agent(self.critics.forward_split(state, joint.reshape(nr, k, 2 * n)), 1)  # twin 0
             if bc_n is not None:
                 loss_n = -q_pi.mean(1) / q_pi.detach().abs().mean(1).clamp(min=1e-6) + w_bc * bc_n
             else:
@@ -163,9 +164,9 @@ class RoleCriticMADDPG(MADDPG):
             loss_n = loss_n + cfg.int8_robustness * robust_n
         self.actor_opt.zero_grad(set_to_none=True)
         (loss_n * self._weight).sum().backward()
-        actor_norm = clip_grad_norm_per_agent(list(self.actors.parameters()), cfg.grad_clip)
+        actor_norm = clip_grad_norm_per_agent(_params_of(self.actors, self.actor_opt), cfg.grad_clip)
         self.actor_opt.step()
-        w = self.learn_mask / self.learn_mask.sum()
+        w = self._mean_w
         if cfg.int8_robustness > 0:
             extra["int8_sensitivity"] = float((robust_n.detach() * w).sum())
         return {**extra, "actor_loss": float((loss_n.detach() * w).sum()), "actor_grad_norm": float(actor_norm.mean())}
