@@ -7,7 +7,7 @@ import pytest
 
 from runtime.spec import Role, SwarmSpec
 from training.baselines import (ClassicalPursuers, FleeingEvaders, Policy, RandomPolicy, TeamPolicy,
-                                assign_targets, make_policy)
+                                assign_targets, local_assign_targets, make_policy)
 from training.config import ExperimentConfig
 from training.env import PursuitEnv
 from training.evaluate import evaluate
@@ -45,6 +45,52 @@ def test_fewer_pursuers_than_evaders_get_distinct_targets():
     rng = np.random.default_rng(1)
     target = assign_targets(rng.uniform(-3, 3, (32, 2, 2)), rng.uniform(-3, 3, (32, 3, 2)))
     assert (target[:, 0] != target[:, 1]).all()
+
+
+@pytest.mark.parametrize("e", [2, 3])
+def test_local_assignment_is_each_pursuer_s_own_assignment_over_the_teammates_it_observes(e):
+    """``local_assign_targets``: pursuer i's target is its row of ``assign_targets`` (the Hungarian method) over
+    itself and its 4 nearest teammates, scouts included; the two-target closed form gives the same."""
+    rng = np.random.default_rng(e)
+    b, t, mates = 40, 10, 4
+    team = rng.uniform(-3, 3, (b, t, 2))
+    ep = rng.uniform(-3, 3, (b, e, 2))
+    pursuers = np.arange(5)
+    got = local_assign_targets(team, pursuers, ep, mates)
+    for bi in range(b):
+        for i in pursuers:
+            dist = np.linalg.norm(team[bi] - team[bi, i], axis=-1)
+            dist[i] = np.inf
+            group = np.concatenate([[i], np.argsort(dist, kind="stable")[:mates]])
+            assert got[bi, i] == assign_targets(team[bi, group][None], ep[bi][None])[0, 0], (bi, i)
+
+
+def test_local_assignment_follows_what_a_pursuer_sees_not_the_whole_team():
+    """Five pursuers, the first four bunched by target 0 and one far off by target 1: centrally one of the bunch
+    is sent to target 1 (3 slots each); locally a pursuer that sees only the bunch and two scouts near target 1 may
+    keep target 0, and a lone pursuer by target 1 always takes it."""
+    team = np.array([[[-2.0, 0.0], [-2.0, 0.1], [-2.0, -0.1], [-1.9, 0.0], [2.0, 0.0],
+                      [2.1, 0.5], [2.1, -0.5], [0.0, 2.9], [0.0, -2.9], [2.9, 2.9]]])
+    ep = np.array([[[-2.5, 0.0], [2.5, 0.0]]])
+    central = assign_targets(team[:, :5], ep)
+    assert (central == 0).sum() == 3 and central[0, 4] == 1
+    local = local_assign_targets(team, np.arange(5), ep, 4)
+    assert local[0, 4] == 1
+    assert (local[0, :4] == 0).sum() >= 3
+
+
+def test_the_classical_team_s_assignment_is_central_unless_asked(role_based):
+    env = PursuitEnv(role_based.spec, n_envs=4, seed=3)
+    obs = env.reset()
+    central, local = ClassicalPursuers(), ClassicalPursuers()
+    local.assignment = "local"
+    assert central.assignment == "central"
+    np.testing.assert_array_equal(central.act(obs, env), ClassicalPursuers().act(obs, env))
+    assert np.isfinite(local.act(obs, env)).all()
+    bad = ClassicalPursuers()
+    bad.assignment = "nearest"
+    with pytest.raises(ValueError, match="assignment"):
+        bad.act(obs, env)
 
 
 class _Const:

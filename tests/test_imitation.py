@@ -34,6 +34,7 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "evaders": "static"}, "train.teacher"),
     ({"teacher": "classical", "teacher_separation_gain": -1.0}, "train.teacher_separation_gain"),
     ({"teacher": "classical", "teacher_separation_gain": float("nan")}, "train.teacher_separation_gain"),
+    ({"teacher": "classical", "teacher_assignment": "nearest"}, "train.teacher_assignment"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -123,6 +124,32 @@ def test_the_teacher_separation_gain_reaches_the_teacher_and_only_it(tmp_path):
     gentle.separation_gain = 1.0
     np.testing.assert_allclose(got, TeamPolicy(gentle, FleeingEvaders()).act(obs, env))
     assert np.abs(got[:, :2] - default.act(obs, env)[:, :2]).max() > 0.05
+
+
+def test_the_teacher_assignment_reaches_the_teacher_and_only_it(tmp_path):
+    """``train.teacher_assignment = "local"``: the teacher's pursuers choose their targets from what each observes
+    (``local_assign_targets``); the classical team every evaluation compares with keeps the central assignment."""
+    cfg = _cfg(teacher="classical", imitation_steps=100, teacher_assignment="local")
+    cfg = ExperimentConfig.from_dict({**cfg.to_dict(), "spec": {"team": {"n_pursuers": 3, "n_scouts": 2,
+                                                                         "n_evaders": 2}}})
+    trainer = Trainer(cfg, tmp_path / "run")
+    assert trainer.teacher.pursuer_team.assignment == "local"
+    assert ClassicalPursuers().assignment == "central" and TrainConfig().teacher_assignment == "central"
+    env = trainer.env
+    obs = env.reset()
+    local = ClassicalPursuers()
+    local.separation_gain, local.assignment = trainer.tc.teacher_separation_gain, "local"
+    np.testing.assert_allclose(trainer.teacher.act(obs, env), TeamPolicy(local, FleeingEvaders()).act(obs, env))
+    central = ClassicalPursuers()
+    central.separation_gain = trainer.tc.teacher_separation_gain
+    # all three pursuers by evader 0, the scouts halfway: centrally (2 slots each) pursuer 2 goes for evader 1;
+    # locally its group is the whole team of 5 (3 slots each), the scouts take evader 1's, and it stays
+    s = env.state
+    s.pos[:, :5] = [[-2.1, 0.0], [-1.9, 0.0], [-1.5, 0.5], [0.0, 0.5], [0.0, -0.5]]
+    s.pos[:, 5:] = [[-2.0, 0.0], [2.0, 0.0]]
+    s.obstacle_pos[:] = 2.5
+    p_local, p_central = trainer.teacher.act(obs, env)[:, :3], TeamPolicy(central, FleeingEvaders()).act(obs, env)[:, :3]
+    assert np.abs(p_local - p_central).max() > 0.05
 
 
 def test_the_paper_configs_have_no_teacher():

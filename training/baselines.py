@@ -99,6 +99,44 @@ def assign_targets(pursuer_pos: np.ndarray, target_pos: np.ndarray) -> np.ndarra
     return out
 
 
+def local_assign_targets(team_pos: np.ndarray, pursuers: np.ndarray, target_pos: np.ndarray,
+                         n_mates: int) -> np.ndarray:
+    """Each pursuer's target ``[B, P]`` by its own ``assign_targets`` over itself and its ``n_mates`` nearest
+    teammates ``team_pos`` ``[B, T, 2]`` (pursuers and scouts alike, nearest first, ties to the lower index: the
+    teammates a full-observability observation lists, which do not say their role), taking its own row. A function
+    of what one pursuer observes, so that a decentralized student can learn it; the classical team's
+    ``assign_targets`` over every pursuer reads the whole state. ``pursuers``: the pursuers' indices into
+    ``team_pos``. With two targets it is solved in closed form (the group's members whose distance to target 0
+    minus that to target 1 is among the ``c`` smallest go to target 0, ``c`` the number of negative differences
+    clipped to the slots ``[m - ceil(m / 2), ceil(m / 2)]``: the same optimum as the Hungarian method)."""
+    b, t = team_pos.shape[:2]
+    p, e = pursuers.size, target_pos.shape[1]
+    if p == 0 or e <= 1:
+        return np.zeros((b, p), dtype=np.int64)
+    own = team_pos[:, pursuers]  # [B, P, 2]
+    dm = np.linalg.norm(own[:, :, None] - team_pos[:, None], axis=-1)  # [B, P, T]
+    dm[:, np.arange(p), pursuers] = np.inf
+    k = min(n_mates, t - 1)
+    near = np.argsort(dm, axis=2, kind="stable")[:, :, :k]  # [B, P, k]
+    group = np.concatenate([own[:, :, None], np.take_along_axis(team_pos[:, None], near[..., None], axis=2)],
+                           axis=2)  # [B, P, m, 2]: oneself first
+    d = np.linalg.norm(group[:, :, :, None] - target_pos[:, None, None], axis=-1)  # [B, P, m, E]
+    m = k + 1
+    slots = math.ceil(m / e)
+    if e == 2:
+        diff = d[..., 0] - d[..., 1]  # [B, P, m]
+        c = np.clip((diff < 0).sum(-1), m - slots, slots)  # [B, P]
+        rank = (diff < diff[..., :1]).sum(-1)  # own rank among the group (oneself first on ties)
+        return np.where(rank < c, 0, 1).astype(np.int64)
+    out = np.zeros((b, p), dtype=np.int64)
+    slot_target = np.repeat(np.arange(e), slots)
+    for i in range(b):
+        for j in range(p):
+            rows, cols = linear_sum_assignment(d[i, j][:, slot_target])
+            out[i, j] = slot_target[cols[rows == 0][0]]
+    return out
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     n = np.sqrt((v * v).sum(-1, keepdims=True))
     return v / np.maximum(n, 1e-9)
@@ -185,6 +223,10 @@ class ClassicalPursuers:
     """Teammate push at zero distance [normalized action]."""
     lloyd_gain = 2.0
     """Scouts' commanded speed per metre to their cell's centroid [1/s, normalized action]."""
+    assignment = "central"
+    """How the pursuers split between the evaders: "central" (the classical team, the bar): one Hungarian
+    assignment over every pursuer; "local": each pursuer's own over itself and the teammates its observation lists
+    (``local_assign_targets``), for a teacher whose choice of target a decentralized student can learn."""
 
     def act(self, obs: np.ndarray, env) -> np.ndarray:
         spec: SwarmSpec = env.spec
@@ -199,7 +241,12 @@ class ClassicalPursuers:
         wish = np.zeros((b, nt, 2))
         p = np.asarray(t.indices(Role.PURSUER))
         if p.size:
-            wish[:, p] = self._pursue(spec, s.pos[:, p], s.pos[:, nt:], s.vel[:, nt:])
+            target = None
+            if self.assignment == "local":
+                target = local_assign_targets(team_pos, p, s.pos[:, nt:], spec.sensing.n_teammates_observed)
+            elif self.assignment != "central":
+                raise ValueError(f"ClassicalPursuers.assignment: {self.assignment!r} is not 'central' or 'local'")
+            wish[:, p] = self._pursue(spec, s.pos[:, p], s.pos[:, nt:], s.vel[:, nt:], target)
         sc = np.asarray(t.indices(Role.SCOUT))
         if sc.size:
             _, centroids = bounded_cells(s.pos, hw)
@@ -217,9 +264,12 @@ class ClassicalPursuers:
             return self.wall_reach
         return 2.0 * max(spec.per_agent("radius")[:spec.team.n_team])
 
-    def _pursue(self, spec: SwarmSpec, pp: np.ndarray, ep: np.ndarray, ev: np.ndarray) -> np.ndarray:
-        """Unit velocity wishes ``[B, P, 2]`` of the pursuers toward their assigned evaders, led."""
-        target = assign_targets(pp, ep)  # [B, P]
+    def _pursue(self, spec: SwarmSpec, pp: np.ndarray, ep: np.ndarray, ev: np.ndarray,
+                target: np.ndarray | None = None) -> np.ndarray:
+        """Unit velocity wishes ``[B, P, 2]`` of the pursuers toward their assigned evaders (``target`` ``[B, P]``;
+        None: ``assign_targets``), led."""
+        if target is None:
+            target = assign_targets(pp, ep)  # [B, P]
         bi = np.arange(pp.shape[0])[:, None]
         tp = ep[bi, target]
         tv = ev[bi, target]

@@ -207,6 +207,11 @@ class TrainConfig:
     classical team's, the bar every evaluation compares with). Students fly through ``[spec.avoidance]``, which
     keeps teammates apart by itself; a gentler push leaves their labels near a crowded target closer to pursuit
     (``results/issue13/label_source.py``)."""
+    teacher_assignment: str = "central"
+    """How the classical teacher splits its pursuers between the evaders (``ClassicalPursuers.assignment``):
+    "central" (the classical team's: one Hungarian assignment over every pursuer, which reads the whole state), or
+    "local": each pursuer's own over itself and the teammates its observation lists, a label that is a function of
+    what the student sees (``results/issue13/assignment_info.py``)."""
     imitation_steps: int = 0
     """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
     beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor
@@ -323,6 +328,8 @@ class TrainConfig:
         if not (math.isfinite(self.teacher_separation_gain) and self.teacher_separation_gain >= 0):
             raise SpecError(f"train.teacher_separation_gain: must be a finite number >= 0, got "
                             f"{self.teacher_separation_gain!r}")
+        if self.teacher_assignment not in ("central", "local"):
+            raise SpecError(f"train.teacher_assignment: {self.teacher_assignment!r} is not one of 'central', 'local'")
         if self.imitation_steps < 0 or self.imitation_steps > self.steps:
             raise SpecError(f"train.imitation_steps: must be in [0, train.steps = {self.steps}], got "
                             f"{self.imitation_steps!r}")

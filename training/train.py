@@ -184,6 +184,7 @@ class Trainer:
             from training.baselines import ClassicalPursuers, FleeingEvaders, TeamPolicy
             pursuers = ClassicalPursuers()
             pursuers.separation_gain = tc.teacher_separation_gain
+            pursuers.assignment = tc.teacher_assignment
             self.teacher = TeamPolicy(pursuers, FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
         self._learns = self.agent.learn_mask.cpu().numpy() > 0  # [N] agents whose actors train
