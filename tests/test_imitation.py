@@ -197,7 +197,45 @@ def test_imitation_near_weight_weighs_the_rows_next_to_a_known_target():
     assert torch.allclose(plain._bc_loss(mu, teach, obs), torch.nan_to_num(sq).sum(1) / has.sum(1))
 
 
+def test_imitation_obstacle_weight_weighs_the_rows_next_to_an_obstacle():
+    """Rows whose agent is within ``imitation_obstacle_radius`` of an obstacle's surface (centre distance minus the
+    obstacle's radius minus its own) weigh ``imitation_obstacle_weight``; with the near-target weight, the product."""
+    cfg = _cfg(teacher="classical", imitation_steps=100, imitation_obstacle_weight=3.0, imitation_obstacle_radius=0.3)
+    spec, tc = cfg.spec, cfg.train
+    agent = MADDPG(spec, tc)
+    k, n, d = 4, spec.n_agents, spec.max_obs_dim
+    obs = torch.zeros(k, n, d)
+    for i, role in enumerate(spec.roles):
+        f = spec.layout(role)["obstacles"]
+        assert f.rows >= 2
+        col = {c: [f.start + row * len(f.columns) + f.columns.index(c) for row in range(f.rows)] for c in f.columns}
+        for row in range(1, f.rows):  # every obstacle but the first far away
+            obs[:, i, col["dx"][row]], obs[:, i, col["radius"][row]] = 5.0, 0.4
+        r = spec.per_agent("radius")[i]
+        # the first: surface gaps 0.1 and 0.29 (near), 0.31 (not), and a radius-0 row (no obstacle) 0.2 away
+        obs[:, i, col["dx"][0]] = torch.tensor([0.5 + r, 0.69 + r, 0.71 + r, 0.2 + r])
+        obs[:, i, col["radius"][0]] = torch.tensor([0.4, 0.4, 0.4, 0.0])
+    w = agent.near_weights(obs)
+    assert torch.equal(w, torch.tensor([3.0, 3.0, 1.0, 1.0]).expand(n, k)), w
+    # with the near-target weight 2 as well: a known target 0.2 m away in rows 0 and 2, for the pursuer team
+    both = MADDPG(spec, dataclasses.replace(tc, imitation_near_weight=2.0))
+    for i, role in enumerate(spec.roles):
+        if "targets" in spec.layout(role).names():
+            f = spec.layout(role)["targets"]
+            obs[[0, 2], i, f.start + f.columns.index("dx")] = 0.2
+            obs[[0, 2], i, f.start + f.columns.index("known")] = 1.0
+    wb = both.near_weights(obs)
+    for i, role in enumerate(spec.roles):
+        sees = "targets" in spec.layout(role).names()
+        want = torch.tensor([6.0, 3.0, 2.0, 1.0]) if sees else torch.tensor([3.0, 3.0, 1.0, 1.0])
+        assert torch.equal(wb[i], want), (i, role, wb[i])
+    plain = MADDPG(spec, dataclasses.replace(tc, imitation_obstacle_weight=1.0))
+    assert plain._obstacle is None and plain._near is None
+
+
 @pytest.mark.parametrize("train, field", [
+    ({"imitation_obstacle_weight": 0.0}, "train.imitation_obstacle_weight"),
+    ({"imitation_obstacle_radius": float("nan")}, "train.imitation_obstacle_radius"),
     ({"imitation_near_weight": 0.0}, "train.imitation_near_weight"),
     ({"imitation_near_weight": float("inf")}, "train.imitation_near_weight"),
     ({"imitation_near_radius": -0.5}, "train.imitation_near_radius"),

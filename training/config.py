@@ -237,6 +237,14 @@ class TrainConfig:
     next to a target (``results/issue13/clone_error.py``), where few of the DAgger rows are. 1: unweighted."""
     imitation_near_radius: float = 0.5
     """[m] How near a known target makes a row "near" for ``imitation_near_weight``."""
+    imitation_obstacle_weight: float = 1.0
+    """Weight of a behaviour-cloning row whose agent is within ``imitation_obstacle_radius`` of an obstacle's
+    surface (times ``imitation_near_weight`` where both hold): there the teacher slides along the surface to the
+    side its wish leans to, a label that flips side when the target is straight behind the obstacle, and a clone
+    that averages the two sides stalls (``results/issue13/tracking_split.py``). 1: unweighted."""
+    imitation_obstacle_radius: float = 0.3
+    """[m] How near an obstacle's surface makes a row "near" for ``imitation_obstacle_weight`` (0.3: where the
+    classical teacher's obstacle avoidance starts)."""
     es_iterations: int = 0
     """After the MADDPG steps: iterations of evolution strategies on the pursuer team's actors, scored on the
     evaluation's metrics against the training pool and the frozen co-trained evaders (``training.es``); 0: none.
@@ -371,6 +379,12 @@ class TrainConfig:
         if not (math.isfinite(self.imitation_near_weight) and self.imitation_near_weight > 0):
             raise SpecError(f"train.imitation_near_weight: must be a finite number > 0 (1: unweighted), got "
                             f"{self.imitation_near_weight!r}")
+        if not (math.isfinite(self.imitation_obstacle_weight) and self.imitation_obstacle_weight > 0):
+            raise SpecError(f"train.imitation_obstacle_weight: must be a finite number > 0 (1: unweighted), got "
+                            f"{self.imitation_obstacle_weight!r}")
+        if not (math.isfinite(self.imitation_obstacle_radius) and self.imitation_obstacle_radius > 0):
+            raise SpecError(f"train.imitation_obstacle_radius: must be a finite distance > 0 [m], got "
+                            f"{self.imitation_obstacle_radius!r}")
         if not (math.isfinite(self.imitation_near_radius) and self.imitation_near_radius > 0):
             raise SpecError(f"train.imitation_near_radius: must be a finite distance > 0 [m], got "
                             f"{self.imitation_near_radius!r}")

@@ -417,6 +417,7 @@ class MADDPG:
             gain[i, 0, :len(offset)][torch.tensor(offset)] = cfg.obs_offset_gain
         self._obs_lo, self._obs_span = lo.to(dev), (hi - lo).to(dev)
         self._near = _near_columns(spec, dev) if cfg.imitation_near_weight != 1.0 else None
+        self._obstacle = _obstacle_columns(spec, dev) if cfg.imitation_obstacle_weight != 1.0 else None
         self._in_scale = self._in_shift = None
         if cfg.obs_scaling:  # x -> gain (2 (x - lo) / span - 1); padding columns (span 0) stay 0
             span = hi - lo
@@ -581,21 +582,33 @@ class MADDPG:
         t = teach.transpose(0, 1)  # [N, K, 2]
         has = torch.isfinite(t).all(-1)  # [N, K]
         sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros((), device=mu.device))
-        if self._near is None or obs is None:
+        if (self._near is None and self._obstacle is None) or obs is None:
             return sq.sum(1) / has.sum(1).clamp(min=1)
         w = has * self.near_weights(obs)
         return (sq * w).sum(1) / w.sum(1).clamp(min=1e-12)
 
     def near_weights(self, obs: torch.Tensor) -> torch.Tensor:
-        """[N, K] ``train.imitation_near_weight`` where agent n's raw observation ``obs`` [K, N, D] shows a known
-        target within ``train.imitation_near_radius``, 1 elsewhere (and for agents that observe no targets)."""
-        cols, sees = self._near
+        """[N, K] cloning-row weights of the raw observations ``obs`` [K, N, D]: ``train.imitation_near_weight``
+        where agent n sees a known target within ``train.imitation_near_radius`` (agents that observe no targets:
+        never), times ``train.imitation_obstacle_weight`` where it is within ``train.imitation_obstacle_radius`` of
+        an obstacle's surface; 1 elsewhere."""
         o = obs.transpose(0, 1)  # [N, K, D]
-        v = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1, -1).flatten(2))  # [N, K, T*3]
-        v = v.view(o.shape[0], o.shape[1], -1, 3)
-        r = self.cfg.imitation_near_radius
-        near = ((v[..., 0].square() + v[..., 1].square() < r * r) & (v[..., 2] > 0.5)).any(-1) & sees.view(-1, 1)
-        return torch.where(near, self.cfg.imitation_near_weight, 1.0)
+        w = torch.ones(o.shape[:2], dtype=o.dtype, device=o.device)
+        if self._near is not None:
+            cols, sees = self._near
+            v = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1, -1).flatten(2))  # [N, K, T*3]
+            v = v.view(o.shape[0], o.shape[1], -1, 3)
+            r = self.cfg.imitation_near_radius
+            near = ((v[..., 0].square() + v[..., 1].square() < r * r) & (v[..., 2] > 0.5)).any(-1) & sees.view(-1, 1)
+            w = torch.where(near, self.cfg.imitation_near_weight, w)
+        if self._obstacle is not None:
+            cols, own = self._obstacle
+            v = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1, -1).flatten(2))
+            v = v.view(o.shape[0], o.shape[1], -1, 3)  # [N, K, rows, (dx, dy, radius)]
+            surface = (v[..., 0].square() + v[..., 1].square()).sqrt() - v[..., 2] - own.view(-1, 1, 1)
+            near = ((surface < self.cfg.imitation_obstacle_radius) & (v[..., 2] > 0)).any(-1)
+            w = torch.where(near, w * self.cfg.imitation_obstacle_weight, w)
+        return w
 
     def clone_step(self, obs: torch.Tensor, teach: torch.Tensor) -> float:
         """One behaviour-cloning step of every actor (no critic, no target update) on observations ``[K, N, D]``
@@ -708,6 +721,23 @@ def _near_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, 
             cols[i, k] = cols[i, 0]
     sees = torch.tensor([bool(p) for p in per])
     return cols.to(device), sees.to(device)
+
+
+def _obstacle_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """For ``train.imitation_obstacle_weight``: per agent, the observation columns (dx, dy, radius) of each obstacle
+    row [N, O, 3] (every role observes the obstacles, ``spec.layout``), and each agent's own radius [N] [m]; None
+    in an arena without obstacles."""
+    per = []
+    for role in spec.roles:
+        f = spec.layout(role)["obstacles"]
+        c = [f.columns.index(x) for x in ("dx", "dy", "radius")]
+        per.append([[f.start + k * len(f.columns) + j for j in c] for k in range(f.rows)])
+    rows = max(len(p) for p in per)
+    if rows == 0:  # an arena without obstacles: no row is near one
+        return None
+    cols = torch.tensor([p + [p[0]] * (rows - len(p)) for p in per], dtype=torch.long)
+    own = torch.tensor([float(r) for r in spec.per_agent("radius")])
+    return cols.to(device), own.to(device)
 
 
 def _index(rows: Sequence[int], n_models: int, device: torch.device) -> torch.Tensor | None:
