@@ -7,7 +7,7 @@ import pytest
 
 from runtime.spec import Role, SwarmSpec
 from training.baselines import (ClassicalPursuers, FleeingEvaders, Policy, RandomPolicy, TeamPolicy,
-                                assign_targets, local_assign_targets, make_policy)
+                                assign_targets, avoid_obstacles, local_assign_targets, make_policy)
 from training.config import ExperimentConfig
 from training.env import PursuitEnv
 from training.evaluate import evaluate
@@ -91,6 +91,23 @@ def test_the_classical_team_s_assignment_is_central_unless_asked(role_based):
     bad.assignment = "nearest"
     with pytest.raises(ValueError, match="assignment"):
         bad.act(obs, env)
+
+
+def test_a_soft_obstacle_side_fades_the_slide_out_instead_of_flipping_it():
+    """``side_softness`` 0 (the classical team's): a wish straight at an obstacle's centre slides to one side and a
+    hair off it to the other; > 0: the slide shrinks continuously to nothing there and nears the hard one as the
+    wish leans to a side."""
+    pos = np.zeros((1, 3, 2))
+    obstacle, radius = np.array([[[0.5, 0.0]]]), np.array([[0.3]])
+    body = np.full(3, 0.075)
+    wish = np.array([[[1.0, 0.0], [1.0, 1e-6], [1.0, -1e-6]]])  # straight at it, a hair left, a hair right
+    hard = avoid_obstacles(pos, wish, body, obstacle, radius, 0.3, 0.5)
+    assert abs(hard[0, 1, 1] - hard[0, 2, 1]) > 0.5  # the hard side flips
+    soft = avoid_obstacles(pos, wish, body, obstacle, radius, 0.3, 0.5, side_softness=0.3)
+    assert abs(soft[0, 1, 1] - soft[0, 2, 1]) < 1e-5 and abs(soft[0, 0, 1]) < 1e-12
+    leaning = np.array([[[1.0, 1.0]]])  # 45 degrees off: tanh(0.707 / 0.01) = 1
+    np.testing.assert_allclose(avoid_obstacles(pos[:, :1], leaning, body[:1], obstacle, radius, 0.3, 0.5, 0.01),
+                               avoid_obstacles(pos[:, :1], leaning, body[:1], obstacle, radius, 0.3, 0.5), atol=1e-9)
 
 
 class _Const:

@@ -35,6 +35,7 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "teacher_separation_gain": -1.0}, "train.teacher_separation_gain"),
     ({"teacher": "classical", "teacher_separation_gain": float("nan")}, "train.teacher_separation_gain"),
     ({"teacher": "classical", "teacher_assignment": "nearest"}, "train.teacher_assignment"),
+    ({"teacher": "classical", "teacher_obstacle_softness": -0.1}, "train.teacher_obstacle_softness"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -134,6 +135,9 @@ def test_the_teacher_assignment_reaches_the_teacher_and_only_it(tmp_path):
                                                                          "n_evaders": 2}}})
     trainer = Trainer(cfg, tmp_path / "run")
     assert trainer.teacher.pursuer_team.assignment == "local"
+    assert trainer.teacher.pursuer_team.obstacle_side_softness == 0.0 == ClassicalPursuers().obstacle_side_softness
+    soft = Trainer(_cfg(teacher="classical", imitation_steps=100, teacher_obstacle_softness=0.3), tmp_path / "soft")
+    assert soft.teacher.pursuer_team.obstacle_side_softness == 0.3
     assert ClassicalPursuers().assignment == "central" and TrainConfig().teacher_assignment == "central"
     env = trainer.env
     obs = env.reset()

@@ -155,12 +155,16 @@ def _perp_towards(n: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def avoid_obstacles(pos: np.ndarray, v: np.ndarray, radius: np.ndarray, obstacle_pos: np.ndarray,
-                    obstacle_radius: np.ndarray, reach: float, repulsion: float) -> np.ndarray:
+                    obstacle_radius: np.ndarray, reach: float, repulsion: float,
+                    side_softness: float = 0.0) -> np.ndarray:
     """Bends the velocity wish ``v`` ``[B, M, 2]`` around circular obstacles.
 
     Within ``reach`` [m] of an obstacle's surface the inward part of ``v`` is turned into motion along the
     surface (the side ``v`` already leans to), in proportion to closeness, plus a repulsion growing to
-    ``repulsion`` at contact. ``radius`` ``[M]``: the agents' body radii.
+    ``repulsion`` at contact. ``radius`` ``[M]``: the agents' body radii. ``side_softness`` > 0: the motion along
+    the surface is scaled by ``tanh(lean / side_softness)``, ``lean`` the sine of the angle between ``v`` and the
+    surface normal (signed by side), so that it fades to nothing instead of flipping side when ``v`` points
+    straight at the obstacle's centre: a continuous function of the positions, which a learned clone can follow.
     """
     if obstacle_pos.shape[1] == 0:
         return v
@@ -171,7 +175,12 @@ def avoid_obstacles(pos: np.ndarray, v: np.ndarray, radius: np.ndarray, obstacle
     w = np.clip(1.0 - surface / reach, 0.0, 1.0)  # [B, M, K]
     vk = v[:, :, None, :]
     inward = np.maximum(-(vk * n).sum(-1), 0.0)  # speed toward the obstacle
-    t = _perp_towards(n, vk)
+    if side_softness > 0:
+        t0 = np.stack([-n[..., 1], n[..., 0]], axis=-1)
+        lean = (t0 * vk).sum(-1) / np.maximum(np.sqrt((vk * vk).sum(-1)), 1e-12)
+        t = t0 * np.tanh(lean / side_softness)[..., None]
+    else:
+        t = _perp_towards(n, vk)
     return v + ((w * inward + repulsion * w * w)[..., None] * n + (w * inward)[..., None] * t).sum(2)
 
 
@@ -223,6 +232,10 @@ class ClassicalPursuers:
     """Teammate push at zero distance [normalized action]."""
     lloyd_gain = 2.0
     """Scouts' commanded speed per metre to their cell's centroid [1/s, normalized action]."""
+    obstacle_side_softness = 0.0
+    """``avoid_obstacles``' ``side_softness`` for the team: 0 (the classical team): slide to the side the wish leans
+    to, flipping side when it points straight at the obstacle's centre; > 0: fade the slide out there instead
+    (``train.teacher_obstacle_softness``)."""
     assignment = "central"
     """How the pursuers split between the evaders: "central" (the classical team, the bar): one Hungarian
     assignment over every pursuer; "local": each pursuer's own over itself and the teammates its observation lists
@@ -253,7 +266,7 @@ class ClassicalPursuers:
             wish[:, sc] = _clip_norm(self.lloyd_gain * (centroids[:, sc] - s.pos[:, sc]))
         v = wish + separation(team_pos, team_pos, self.separation_reach, self.separation_gain)
         v = avoid_obstacles(team_pos, v, radius[:nt], s.obstacle_pos, s.obstacle_radius,
-                            self.obstacle_reach, self.obstacle_repulsion)
+                            self.obstacle_reach, self.obstacle_repulsion, self.obstacle_side_softness)
         v = wall_field(team_pos, v, radius[:nt], hw, self.wall_reach_for(spec), 0.0)
         out[:, :nt] = _clip_norm(v)
         return out

@@ -207,6 +207,11 @@ class TrainConfig:
     classical team's, the bar every evaluation compares with). Students fly through ``[spec.avoidance]``, which
     keeps teammates apart by itself; a gentler push leaves their labels near a crowded target closer to pursuit
     (``results/issue13/label_source.py``)."""
+    teacher_obstacle_softness: float = 0.0
+    """The classical teacher's ``ClassicalPursuers.obstacle_side_softness``: 0 (the classical team's): next to an
+    obstacle it slides to the side its wish leans to, a label that flips side when the target is straight behind
+    the obstacle, where a clone that averages the two sides stalls; > 0 (e.g. 0.3): the slide fades out there
+    instead, a continuous label (the teacher as strong: ``results/issue13/teacher_obstacle.py``)."""
     teacher_assignment: str = "central"
     """How the classical teacher splits its pursuers between the evaders (``ClassicalPursuers.assignment``):
     "central" (the classical team's: one Hungarian assignment over every pursuer, which reads the whole state), or
@@ -336,6 +341,9 @@ class TrainConfig:
         if not (math.isfinite(self.teacher_separation_gain) and self.teacher_separation_gain >= 0):
             raise SpecError(f"train.teacher_separation_gain: must be a finite number >= 0, got "
                             f"{self.teacher_separation_gain!r}")
+        if not (math.isfinite(self.teacher_obstacle_softness) and self.teacher_obstacle_softness >= 0):
+            raise SpecError(f"train.teacher_obstacle_softness: must be a finite number >= 0 (0: the classical "
+                            f"team's), got {self.teacher_obstacle_softness!r}")
         if self.teacher_assignment not in ("central", "local"):
             raise SpecError(f"train.teacher_assignment: {self.teacher_assignment!r} is not one of 'central', 'local'")
         if self.imitation_steps < 0 or self.imitation_steps > self.steps:

@@ -185,6 +185,7 @@ class Trainer:
             pursuers = ClassicalPursuers()
             pursuers.separation_gain = tc.teacher_separation_gain
             pursuers.assignment = tc.teacher_assignment
+            pursuers.obstacle_side_softness = tc.teacher_obstacle_softness
             self.teacher = TeamPolicy(pursuers, FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
         self._learns = self.agent.learn_mask.cpu().numpy() > 0  # [N] agents whose actors train
