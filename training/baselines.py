@@ -120,21 +120,16 @@ def local_assign_targets(team_pos: np.ndarray, pursuers: np.ndarray, target_pos:
     near = np.argsort(dm, axis=2, kind="stable")[:, :, :k]  # [B, P, k]
     group = np.concatenate([own[:, :, None], np.take_along_axis(team_pos[:, None], near[..., None], axis=2)],
                            axis=2)  # [B, P, m, 2]: oneself first
-    d = np.linalg.norm(group[:, :, :, None] - target_pos[:, None, None], axis=-1)  # [B, P, m, E]
     m = k + 1
-    slots = math.ceil(m / e)
     if e == 2:
+        slots = math.ceil(m / 2)
+        d = np.linalg.norm(group[:, :, :, None] - target_pos[:, None, None], axis=-1)  # [B, P, m, 2]
         diff = d[..., 0] - d[..., 1]  # [B, P, m]
         c = np.clip((diff < 0).sum(-1), m - slots, slots)  # [B, P]
         rank = (diff < diff[..., :1]).sum(-1)  # own rank among the group (oneself first on ties)
         return np.where(rank < c, 0, 1).astype(np.int64)
-    out = np.zeros((b, p), dtype=np.int64)
-    slot_target = np.repeat(np.arange(e), slots)
-    for i in range(b):
-        for j in range(p):
-            rows, cols = linear_sum_assignment(d[i, j][:, slot_target])
-            out[i, j] = slot_target[cols[rows == 0][0]]
-    return out
+    targets = np.broadcast_to(target_pos[:, None], (b, p, e, 2)).reshape(b * p, e, 2)
+    return assign_targets(group.reshape(b * p, m, 2), targets)[:, 0].reshape(b, p)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

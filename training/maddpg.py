@@ -594,17 +594,20 @@ class MADDPG:
         an obstacle's surface; 1 elsewhere."""
         o = obs.transpose(0, 1)  # [N, K, D]
         w = torch.ones(o.shape[:2], dtype=o.dtype, device=o.device)
+
+        def rows(cols: torch.Tensor) -> torch.Tensor:  # [N, K, rows, 3]: each agent's columns ``cols`` [N, rows, 3]
+            v = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1, -1).flatten(2))
+            return v.view(o.shape[0], o.shape[1], -1, 3)
+
         if self._near is not None:
             cols, sees = self._near
-            v = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1, -1).flatten(2))  # [N, K, T*3]
-            v = v.view(o.shape[0], o.shape[1], -1, 3)
+            v = rows(cols)  # (dx, dy, known) of each target
             r = self.cfg.imitation_near_radius
             near = ((v[..., 0].square() + v[..., 1].square() < r * r) & (v[..., 2] > 0.5)).any(-1) & sees.view(-1, 1)
             w = torch.where(near, self.cfg.imitation_near_weight, w)
         if self._obstacle is not None:
             cols, own = self._obstacle
-            v = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1, -1).flatten(2))
-            v = v.view(o.shape[0], o.shape[1], -1, 3)  # [N, K, rows, (dx, dy, radius)]
+            v = rows(cols)  # (dx, dy, radius) of each obstacle
             surface = (v[..., 0].square() + v[..., 1].square()).sqrt() - v[..., 2] - own.view(-1, 1, 1)
             near = ((surface < self.cfg.imitation_obstacle_radius) & (v[..., 2] > 0)).any(-1)
             w = torch.where(near, w * self.cfg.imitation_obstacle_weight, w)
@@ -699,27 +702,32 @@ class MADDPG:
         self._last_actor = dict(sd.get("last_actor", {}))
 
 
-def _near_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """For ``train.imitation_near_weight``: per agent, the observation columns (dx, dy, known) of each target row
-    [N, T, 3], and whether the agent observes targets at all [N] (evaders do not: their rows get 0, unused)."""
-    n = spec.n_agents
+def _field_columns(spec: SwarmSpec, field: str, names: tuple[str, str, str]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per agent, the observation columns ``names`` of each row of ``field`` [N, rows, 3] (a role with fewer rows
+    repeats its first; one without the field reads column 0), and whether the agent observes ``field`` at all [N]."""
     per: list[list[list[int]]] = []
     for role in spec.roles:
         layout = spec.layout(role)
-        if "targets" in layout.names():
-            f = layout["targets"]
-            c = [f.columns.index(x) for x in ("dx", "dy", "known")]
+        if field in layout.names():
+            f = layout[field]
+            c = [f.columns.index(x) for x in names]
             per.append([[f.start + k * len(f.columns) + j for j in c] for k in range(f.rows)])
         else:
             per.append([])
     t = max((len(p) for p in per), default=0) or 1
-    cols = torch.zeros(n, t, 3, dtype=torch.long)
+    cols = torch.zeros(spec.n_agents, t, 3, dtype=torch.long)
     for i, p in enumerate(per):
         for k, row in enumerate(p):
             cols[i, k] = torch.tensor(row)
-        for k in range(len(p), t):  # a role with fewer target rows repeats its first (or reads column 0, unused)
+        for k in range(len(p), t):
             cols[i, k] = cols[i, 0]
-    sees = torch.tensor([bool(p) for p in per])
+    return cols, torch.tensor([bool(p) for p in per])
+
+
+def _near_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """For ``train.imitation_near_weight``: per agent, the observation columns (dx, dy, known) of each target row
+    [N, T, 3], and whether the agent observes targets at all [N] (evaders do not: their rows get 0, unused)."""
+    cols, sees = _field_columns(spec, "targets", ("dx", "dy", "known"))
     return cols.to(device), sees.to(device)
 
 
@@ -727,15 +735,9 @@ def _obstacle_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tens
     """For ``train.imitation_obstacle_weight``: per agent, the observation columns (dx, dy, radius) of each obstacle
     row [N, O, 3] (every role observes the obstacles, ``spec.layout``), and each agent's own radius [N] [m]; None
     in an arena without obstacles."""
-    per = []
-    for role in spec.roles:
-        f = spec.layout(role)["obstacles"]
-        c = [f.columns.index(x) for x in ("dx", "dy", "radius")]
-        per.append([[f.start + k * len(f.columns) + j for j in c] for k in range(f.rows)])
-    rows = max(len(p) for p in per)
-    if rows == 0:  # an arena without obstacles: no row is near one
+    if all(spec.layout(role)["obstacles"].rows == 0 for role in spec.roles):
         return None
-    cols = torch.tensor([p + [p[0]] * (rows - len(p)) for p in per], dtype=torch.long)
+    cols, _ = _field_columns(spec, "obstacles", ("dx", "dy", "radius"))
     own = torch.tensor([float(r) for r in spec.per_agent("radius")])
     return cols.to(device), own.to(device)
 

@@ -16,14 +16,12 @@ mean over the suite, and team contacts per episode.
 
     .venv/bin/python results/issue13/assignment_info.py [CONFIG] [EPISODES]   (configs/role_based.toml, 100)
 """
-import math
 import sys
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from runtime.spec import Role
-from training.baselines import ClassicalPursuers, TeamPolicy
+from training.baselines import ClassicalPursuers, TeamPolicy, assign_targets
 from training.config import ExperimentConfig
 from training.evader_suite import SUITE, make_suite_evader
 from training.evaluate import evaluate, mean_of
@@ -45,41 +43,21 @@ class LocalAssignment(ClassicalPursuers):
         return super().act(obs, env)
 
     def _pursue(self, spec, pp, ep, ev, target=None):
-        if self.mode in ("central", "local"):
-            return super()._pursue(spec, pp, ep, ev, target)
-        s, nt = self._state, spec.team.n_team
-        p_idx = np.asarray(spec.team.indices(Role.PURSUER))
-        b, p = pp.shape[:2]
-        e = ep.shape[1]
-        d = np.linalg.norm(pp[:, :, None] - ep[:, None], axis=-1)  # [B, P, E]
         if self.mode == "nearest":
-            target = d.argmin(2)
-        else:
+            target = np.linalg.norm(pp[:, :, None] - ep[:, None], axis=-1).argmin(2)
+        elif self.mode == "local_roles":  # the Hungarian method over itself and the pursuers among its 4 nearest
+            s, nt = self._state, spec.team.n_team
+            p_idx = np.asarray(spec.team.indices(Role.PURSUER))
             team = s.pos[:, :nt]
             dm = np.linalg.norm(team[:, p_idx, None] - team[:, None], axis=-1)  # [B, P, T]
-            dm[:, np.arange(p), p_idx] = np.inf
-            near = np.argsort(dm, axis=2)[:, :, :MATES]  # each pursuer's 4 nearest teammates (team indices)
-            pos_in_p = {int(t): k for k, t in enumerate(p_idx)}
-            target = np.zeros((b, p), dtype=np.int64)
-            for bi in range(b):
-                for i in range(p):
-                    group_pos = [pp[bi, i]]
-                    for t in near[bi, i]:
-                        if int(t) not in pos_in_p:
-                            continue
-                        group_pos.append(team[bi, t])
-                    g = np.asarray(group_pos)
-                    k = math.ceil(len(g) / e)
-                    cost = np.linalg.norm(g[:, None] - ep[bi][None], axis=-1)[:, np.repeat(np.arange(e), k)]
-                    rows, cols = linear_sum_assignment(cost)
-                    target[bi, i] = np.repeat(np.arange(e), k)[cols[list(rows).index(0)]]
-        bi = np.arange(b)[:, None]
-        tp, tv = ep[bi, target], ev[bi, target]
-        dist = np.linalg.norm(tp - pp, axis=-1, keepdims=True)
-        lead = np.minimum(dist / spec.pursuer.max_speed, self.lead_time_max)
-        hw = spec.arena.half_width
-        goal = np.clip(tp + tv * lead, -hw, hw)
-        return (goal - pp) / np.maximum(np.linalg.norm(goal - pp, axis=-1, keepdims=True), 1e-9)
+            dm[:, np.arange(p_idx.size), p_idx] = np.inf
+            near = np.argsort(dm, axis=2, kind="stable")[:, :, :MATES]  # each pursuer's 4 nearest teammates
+            target = np.zeros(pp.shape[:2], dtype=np.int64)
+            for bi in range(pp.shape[0]):
+                for i in range(p_idx.size):
+                    group = [pp[bi, i]] + [team[bi, t] for t in near[bi, i] if t in p_idx]
+                    target[bi, i] = assign_targets(np.asarray(group)[None], ep[bi][None])[0, 0]
+        return super()._pursue(spec, pp, ep, ev, target)
 
 
 print(f"{cfg.name}: {eps} episodes per kind, evaluation seed 0; min distance [m] / tracking")

@@ -17,15 +17,12 @@ from training.baselines import ClassicalPursuers, TeamPolicy
 from training.env import PursuitEnv
 from training.evaluate import eval_seed
 from training.evader_suite import make_suite_evader
-from training.learned_eval import load_learned
+from training.learned_eval import load_source
 
 models = sys.argv[1] if len(sys.argv) > 1 else "models/role_based"
 episodes = int(sys.argv[2]) if len(sys.argv) > 2 else 100
 kinds = (sys.argv[3] if len(sys.argv) > 3 else "hider,perimeter,juker,wanderer,predictive").split(",")
-from pathlib import Path  # noqa: E402
-
-cfg, learned, _ = (load_learned(run=models) if (Path(models) / "config.toml").is_file()
-                   else load_learned(models=models))
+cfg, learned, _ = load_source(models)
 spec = cfg.spec
 pursuers = np.array([i for i, r in enumerate(spec.roles) if r == Role.PURSUER])
 nt = spec.team.n_team
