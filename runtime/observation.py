@@ -105,6 +105,39 @@ def _fill_agents(view: np.ndarray, ox: np.ndarray, oy: np.ndarray, px: np.ndarra
     view *= valid[..., None]
 
 
+def _assigned(view: np.ndarray, who: np.ndarray, p: int, px: np.ndarray, py: np.ndarray, kn: np.ndarray,
+              known: np.ndarray, heard: np.ndarray | None) -> None:
+    """The ``assigned`` field ``view`` [B, M, E] of observers ``who`` (see ``runtime.spec``): the split of the
+    pursuers ``0..p-1`` each observer hears (``heard`` [B, M, p]; None: all) between the targets it knows (``kn``
+    [B, M, E, 5] sightings, ``known`` [B, M, E])."""
+    view[...] = 0.0
+    isp = who < p
+    if not isp.any():
+        return
+    e = view.shape[-1]
+    if e == 1:
+        view[..., 0] = known[..., 0] * isp
+        return
+    dx0 = px[:, None, :p] - kn[:, :, None, 0, 0]  # [B, M, p]: every pursuer to target 0, then to target 1
+    dy0 = py[:, None, :p] - kn[:, :, None, 0, 1]
+    dx1 = px[:, None, :p] - kn[:, :, None, 1, 0]
+    dy1 = py[:, None, :p] - kn[:, :, None, 1, 1]
+    diff = np.sqrt(dx0 * dx0 + dy0 * dy0) - np.sqrt(dx1 * dx1 + dy1 * dy1)
+    jl = np.arange(p)
+    me = np.minimum(who, p - 1)  # scouts: any row, masked below
+    hear = np.ones(diff.shape, dtype=bool) if heard is None else heard.copy()
+    hear[:, np.arange(who.size), me] = True  # oneself always
+    m = hear.sum(-1)
+    slots = (m + 1) // 2
+    c = np.clip(((diff < 0) & hear).sum(-1), m - slots, slots)
+    own = np.take_along_axis(diff, np.broadcast_to(me[None, :, None], diff.shape[:2] + (1,)), axis=-1)
+    ahead = hear & ((diff < own) | ((diff == own) & (jl < me[:, None])))
+    first = ahead.sum(-1) < c
+    both = known[..., 0] & known[..., 1]
+    view[..., 0] = np.where(both, first, known[..., 0]) * isp
+    view[..., 1] = np.where(both, ~first, known[..., 1]) * isp
+
+
 def encode_observations(spec: SwarmSpec, pos: np.ndarray, vel: np.ndarray, obstacle_pos: np.ndarray,
                         obstacle_radius: np.ndarray, knowledge: np.ndarray, time_s: np.ndarray | float,
                         observers: np.ndarray | None = None, visible: np.ndarray | None = None,
@@ -178,6 +211,9 @@ def encode_observations(spec: SwarmSpec, pos: np.ndarray, vel: np.ndarray, obsta
             mates[:, rows, who] = np.inf  # not oneself
             _fill_agents(_field(block, lay, "teammates"), ox, oy, px[:, :nt], py[:, :nt], vx[:, :nt], vy[:, :nt],
                          mates)
+            if s.share_assignment:
+                heard = None if full else visible[:, who, :team.n_pursuers]
+                _assigned(_field(block, lay, "assigned")[..., 0], who, team.n_pursuers, px, py, kn, known, heard)
         else:
             threats = d[:, :, :nt] if full else np.where(visible[:, who, :nt], d[:, :, :nt], np.inf)
             _fill_agents(_field(block, lay, "threats"), ox, oy, px[:, :nt], py[:, :nt], vx[:, :nt], vy[:, :nt],
@@ -243,6 +279,52 @@ def _fill_one(out: np.ndarray, off: int, k: int, key: np.ndarray, n: int, base: 
 
 
 @njit(cache=True)
+def _assigned_one(out: np.ndarray, off_asg: int, off_tg: int, n_tg: int, i: int, n_pur: int, full: bool, comm: float,
+                  dist: np.ndarray, visible: np.ndarray, has_visible: bool, knowledge: np.ndarray, pos: np.ndarray,
+                  diff: np.ndarray) -> None:
+    """``_assigned`` for one observer ``i``, from the known flags already written at ``off_tg``; ``dist`` its
+    distances to every agent, ``diff`` scratch [>= n_pur]."""
+    for e in range(n_tg):
+        out[off_asg + e] = 0.0
+    if i >= n_pur:
+        return
+    if n_tg == 1:
+        out[off_asg] = out[off_tg + 5]
+        return
+    kn0 = out[off_tg + 5] == 1.0
+    kn1 = out[off_tg + 11] == 1.0
+    if not (kn0 and kn1):
+        out[off_asg] = 1.0 if kn0 else 0.0
+        out[off_asg + 1] = 1.0 if kn1 else 0.0
+        return
+    tx0, ty0 = knowledge[i, 0, 0], knowledge[i, 0, 1]
+    tx1, ty1 = knowledge[i, 1, 0], knowledge[i, 1, 1]
+    for j in range(n_pur):
+        dx0 = pos[j, 0] - tx0
+        dy0 = pos[j, 1] - ty0
+        dx1 = pos[j, 0] - tx1
+        dy1 = pos[j, 1] - ty1
+        diff[j] = np.sqrt(dx0 * dx0 + dy0 * dy0) - np.sqrt(dx1 * dx1 + dy1 * dy1)
+    own = diff[i]
+    m = 0
+    neg = 0
+    ahead = 0
+    for j in range(n_pur):
+        if not (full or j == i or (visible[j] if has_visible else dist[j] <= comm)):
+            continue
+        m += 1
+        if diff[j] < 0:
+            neg += 1
+        if diff[j] < own or (diff[j] == own and j < i):
+            ahead += 1
+    slots = (m + 1) // 2
+    c = min(max(neg, m - slots), slots)
+    first = ahead < c
+    out[off_asg] = 1.0 if first else 0.0
+    out[off_asg + 1] = 0.0 if first else 1.0
+
+
+@njit(cache=True)
 def _encode_one_kernel(prm: np.ndarray, ranges: np.ndarray, pos: np.ndarray, vel: np.ndarray,
                        obstacle_pos: np.ndarray, obstacle_radius: np.ndarray, knowledge: np.ndarray, time_s: float,
                        visible: np.ndarray, has_visible: bool, scratch: np.ndarray, iscratch: np.ndarray,
@@ -252,6 +334,7 @@ def _encode_one_kernel(prm: np.ndarray, ranges: np.ndarray, pos: np.ndarray, vel
     i, nt, n, in_team, full, dim = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5]
     off_pos, off_vel, off_obs, k_obs = prm[6], prm[7], prm[8], prm[9]
     off_oth, k_oth, off_mate, k_mate = prm[10], prm[11], prm[12], prm[13]
+    off_asg, n_pur = prm[14], prm[15]
     sensing, comm, memory = ranges[0], ranges[1], ranges[2]
     w = iscratch.shape[0]
     key, k1, k2 = scratch[:w], scratch[w:2 * w], scratch[2 * w:3 * w]
@@ -300,6 +383,9 @@ def _encode_one_kernel(prm: np.ndarray, ranges: np.ndarray, pos: np.ndarray, vel
             k1[j] = d
         k1[i] = np.inf
         _fill_one(out, off_mate, k_mate, k1, nt, 0, ox, oy, pos, vel, iscratch)
+        if off_asg >= 0:
+            _assigned_one(out, off_asg, off_oth, k_oth, i, n_pur, full != 0, comm, key, visible, has_visible, knowledge, pos,
+                          k2)
     else:
         for j in range(nt):  # threats: the pursuer team within sensing range
             d = key[j]
@@ -325,7 +411,8 @@ def _observer_params(spec: SwarmSpec, observer: int) -> np.ndarray:
     other = lay["targets"] if in_team else lay["threats"]
     return np.array([observer, nt, n, int(in_team), int(spec.sensing.observability == "full"), lay.dim,
                      lay["self_pos"].start, lay["self_vel"].start, lay["obstacles"].start, lay["obstacles"].rows,
-                     other.start, other.rows, lay["teammates"].start, lay["teammates"].rows], dtype=np.int64)
+                     other.start, other.rows, lay["teammates"].start, lay["teammates"].rows,
+                     lay["assigned"].start if "assigned" in lay.names() else -1, team.n_pursuers], dtype=np.int64)
 
 
 def _checked(name: str, a: np.ndarray, shape: tuple, dtype=np.float64) -> np.ndarray:

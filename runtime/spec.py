@@ -19,6 +19,14 @@ pursuers and scouts (the "pursuer team")
                               or older than ``sensing.target_memory``; the other five are then 0 except
                               age = target_memory)
     ``teammates``  [K_m x 5]  the nearest teammates within comm range: dx, dy [m], vx, vy [m/s], valid flag
+    ``assigned``   [E x 1]    only with ``sensing.share_assignment``: 1 for the target this agent takes in the
+                              team's split, else 0 (scouts: all 0). The agent splits the pursuers it hears (every
+                              pursuer with full observability; itself always) between the targets it knows as the
+                              classical team's Hungarian assignment does, each target taking at most ceil(m / 2)
+                              of the m pursuers: pursuers ordered by (distance to target 0 - distance to target 1),
+                              ties to the lower index, the first c go to target 0, c the number of negative
+                              differences clipped to [m - ceil(m / 2), ceil(m / 2)]. One target known: that one;
+                              none: all 0.
 
 evaders
     ``self_pos``, ``self_vel``, ``obstacles`` as above
@@ -191,8 +199,15 @@ class SensingSpec:
     """Teammate slots in the observation (nearest first)."""
     n_threats_observed: int = 4
     """Threat slots in an evader's observation (nearest pursuers or scouts)."""
+    share_assignment: bool = field(default=False, metadata={"since": True})
+    """Add the ``assigned`` field to the pursuer team's observation: the target this pursuer takes in the team's
+    split, which every pursuer computes alike from the pursuers it hears and the targets it knows (the classical
+    team's assignment, decentralized). Needs team.n_evaders <= 2. Off by default (the paper's observation); a spec
+    with it off hashes as before the field existed."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.share_assignment, bool):
+            raise SpecError(f"sensing.share_assignment: must be true or false, got {self.share_assignment!r}")
         _positive(self, "sensing_range")
         _positive(self, "comm_range")
         _positive(self, "target_memory")
@@ -291,6 +306,9 @@ class SwarmSpec:
                 raise SpecError(f"avoidance.teammate_braking ({self.avoidance.teammate_braking} m/s^2) must be below "
                                 f"twice every role's max_accel (the smallest is {slowest} m/s^2): each of two "
                                 f"teammates brakes at half of it; lower it")
+        if self.sensing.share_assignment and self.team.n_evaders > 2:
+            raise SpecError(f"sensing.share_assignment: the shared split is defined for at most 2 targets, the team has "
+                            f"team.n_evaders = {self.team.n_evaders}: set share_assignment = false or use 1-2 evaders")
         biggest = max(self.pursuer.radius, self.scout.radius, self.evader.radius)
         if self.arena.n_obstacles and self.arena.obstacle_clearance <= 2 * biggest:
             raise SpecError(
@@ -445,6 +463,8 @@ class ObsLayout:
                         (-span, -span, -ev, -ev, 0.0, 0.0), (span, span, ev, ev, mem, 1.0)))
             mates = min(s.n_teammates_observed, spec.team.n_team - 1)
         raw.append(("teammates", mates, *agent_cols))
+        if role is not Role.EVADER and s.share_assignment:
+            raw.append(("assigned", spec.team.n_evaders, ("mine",), ("1",), (0.0,), (1.0,)))
         fields: list[ObsField] = []
         start = 0
         for name, rows, cols, units, lo, hi in raw:

@@ -611,9 +611,11 @@ def _c_observation(lib, spec: SwarmSpec, me: int, pos, vel, obst_pos, obst_r, no
     return obs
 
 
-@pytest.mark.parametrize("observability", ["full", "partial"])
-def test_app_observation_matches_the_runtime_encoder(work, observability):
-    spec = SwarmSpec.from_dict({"sensing": {"observability": observability, "sensing_range": 1.5}})
+@pytest.mark.parametrize("observability,share", [("full", False), ("partial", False), ("full", True),
+                                                  ("partial", True)])
+def test_app_observation_matches_the_runtime_encoder(work, observability, share):
+    spec = SwarmSpec.from_dict({"sensing": {"observability": observability, "sensing_range": 1.5,
+                                            "share_assignment": share}})
     world = World(spec, n_envs=1, seed=7)
     st = world.reset()
     rng = np.random.default_rng(8)
@@ -624,7 +626,7 @@ def test_app_observation_matches_the_runtime_encoder(work, observability):
     checked = 0
     for role, me in ((Role.PURSUER, 1), (Role.SCOUT, spec.team.n_pursuers), (Role.EVADER, spec.team.n_team + 1)):
         model = ActorModel(tuple(_random_layers(spec.obs_dim(role), 0)), spec, role, f"{role.label}_x", "test")
-        src = work / f"obs_{observability}_{role.label}"
+        src = work / f"obs_{observability}_{share}_{role.label}"
         (src / "src").mkdir(parents=True)
         gen = cgen.generate(model)
         (src / "src" / "policy.h").write_text(gen.header)
@@ -638,6 +640,9 @@ def test_app_observation_matches_the_runtime_encoder(work, observability):
                              now_ms=int(round(t * 1000)))[:spec.obs_dim(role)]
         np.testing.assert_allclose(got, ref, atol=2e-5)
         checked += int((ref != 0).sum())
+        if share and role is Role.PURSUER:  # the split: one target each (partial: those this pursuer knows)
+            asg = spec.layout(role)["assigned"].slice
+            assert got[asg].sum() == ref[spec.layout(role)["targets"].slice][5::6].max()
     assert checked > 60
 
 

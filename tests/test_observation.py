@@ -93,7 +93,7 @@ _CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 def _specs(draw: st.DrawFn) -> SwarmSpec:
     """The shipped multi_target and role_based specs, and random team sizes, slot counts and ranges."""
     obsv = draw(st.sampled_from(["full", "partial"]))
-    sensing = {"observability": obsv}
+    sensing = {"observability": obsv, "share_assignment": draw(st.booleans())}
     which = draw(st.sampled_from(["multi_target", "role_based", "random"]))
     if which != "random":
         base = SwarmSpec.from_toml(_CONFIGS / f"{which}.toml").to_dict()
@@ -106,7 +106,8 @@ def _specs(draw: st.DrawFn) -> SwarmSpec:
                    target_memory=draw(st.sampled_from([0.5, 3.0])),
                    n_obstacles_observed=draw(st.integers(0, 4)), n_teammates_observed=draw(st.integers(0, 6)),
                    n_threats_observed=draw(st.integers(0, 6)))
-    return SwarmSpec.from_dict({"team": {"n_pursuers": n_p, "n_scouts": n_s, "n_evaders": draw(st.integers(1, 3))},
+    n_e = draw(st.integers(1, 2 if sensing["share_assignment"] else 3))
+    return SwarmSpec.from_dict({"team": {"n_pursuers": n_p, "n_scouts": n_s, "n_evaders": n_e},
                                 "arena": {"n_obstacles": draw(st.integers(0, 4))}, "sensing": sensing})
 
 
@@ -167,3 +168,57 @@ def test_encode_one_reuses_its_encoder_and_checks_its_inputs():
     with pytest.raises(ValueError, match="visible: .*bool"):
         encode_one(spec, s.pos[0], s.vel[0], s.obstacle_pos[0], s.obstacle_radius[0], k[0], 0.3, 0,
                    visible=np.ones(12))
+
+
+# -- the shared split (sensing.share_assignment) ---------------------------------------------------------------
+
+from runtime.tomlmap import SpecError  # noqa: E402
+
+
+def test_assigned_field_is_the_classical_teams_assignment_with_full_observability():
+    from training.baselines import assign_targets
+    spec = SwarmSpec.from_dict({"team": {"n_pursuers": 5, "n_scouts": 5, "n_evaders": 2},
+                                "sensing": {"share_assignment": True}})
+    lay = spec.layout(Role.PURSUER)
+    assert lay.names()[-1] == "assigned" and lay["assigned"].rows == 2 and spec.obs_dim(Role.EVADER) == \
+        SwarmSpec.from_dict({"team": {"n_pursuers": 5, "n_scouts": 5, "n_evaders": 2}}).obs_dim(Role.EVADER)
+    w = World(spec, 256, seed=3)
+    w.reset()
+    s = w.state
+    k = update_knowledge(spec, new_knowledge(spec, 256), s.pos, s.vel, 0.0)
+    a = _obs(spec, w, k)[..., lay["assigned"].slice]
+    want = assign_targets(s.pos[:, :5], s.pos[:, 10:])  # the Hungarian method over every pursuer
+    assert np.array_equal(a[:, :5].argmax(-1), want) and (a[:, :5].sum(-1) == 1).all()
+    assert (a[:, 5:10] == 0).all()  # scouts take no target
+    counts = a[:, :5].sum(1)  # [B, 2]: the split is 2-3 or 3-2
+    assert set(map(tuple, counts.astype(int))) <= {(2, 3), (3, 2)}
+
+
+def test_assigned_field_with_partial_knowledge_and_one_target():
+    spec = SwarmSpec.from_dict({"team": {"n_pursuers": 3, "n_scouts": 1, "n_evaders": 2},
+                                "sensing": {"observability": "partial", "share_assignment": True}})
+    pos = np.array([[[0.0, 0.0], [0.3, 0.0], [2.9, 2.9], [0.0, 0.3], [0.1, 0.1], [-2.9, -2.9]]])
+    vel = np.zeros_like(pos)
+    k = update_knowledge(spec, new_knowledge(spec, 1), pos, vel, 0.0)  # only evader 0 is within sensing
+    lay = spec.layout(Role.PURSUER)
+    o = encode_observations(spec, pos, vel, np.zeros((1, 3, 2)) + 9.0, np.full((1, 3), 0.3), k, 0.0)
+    a = o[0, :, lay["assigned"].slice]
+    assert a[:2].tolist() == [[1.0, 0.0], [1.0, 0.0]] and a[2].tolist() == [0.0, 0.0]  # pursuer 2 knows none
+    assert a[3].tolist() == [0.0, 0.0]  # the scout
+    one = SwarmSpec.from_dict({"team": {"n_pursuers": 2, "n_scouts": 0, "n_evaders": 1},
+                               "sensing": {"share_assignment": True}})
+    w = World(one, 1, seed=0)
+    w.reset()
+    k1 = update_knowledge(one, new_knowledge(one, 1), w.state.pos, w.state.vel, 0.0)
+    assert _obs(one, w, k1)[0, :2, one.layout(Role.PURSUER)["assigned"].slice].tolist() == [[1.0], [1.0]]
+
+
+def test_share_assignment_checks_and_keeps_the_hash_when_off():
+    plain = SwarmSpec()
+    assert SwarmSpec.from_dict({"sensing": {"share_assignment": False}}).hash == plain.hash
+    assert "assigned" not in plain.layout(Role.PURSUER).names()
+    assert SwarmSpec.from_dict({"sensing": {"share_assignment": True}}).hash != plain.hash
+    with pytest.raises(SpecError, match="sensing.share_assignment: the shared split is defined for at most 2"):
+        SwarmSpec.from_dict({"team": {"n_evaders": 3}, "sensing": {"share_assignment": True}})
+    with pytest.raises(SpecError, match="sensing.share_assignment: expected true or false"):
+        SwarmSpec.from_dict({"sensing": {"share_assignment": 1}})

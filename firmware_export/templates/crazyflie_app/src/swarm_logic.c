@@ -230,6 +230,66 @@ static void fill_targets(const swarm_world_t *w, uint32_t now_ms, float *out)
 }
 #endif
 
+#if !SWARM_POLICY_ROLE_IS_EVADER && defined(SWARM_OBS_ASSIGNED_START)
+/* runtime.observation._assigned (spec sensing.share_assignment): 1 for the target this pursuer takes in the split
+ * of the pursuers it hears (itself always) between the targets it knows, each target at most ceil(m / 2) of the
+ * m pursuers: ordered by (distance to target 0 - distance to target 1), ties to the lower index, the first c go
+ * to target 0, c the negative differences clipped to [m - ceil(m / 2), ceil(m / 2)]. Scouts: all 0. */
+typedef char swarm_check_assigned_layout[(SWARM_OBS_ASSIGNED_ROWS == SWARM_SPEC_N_EVADERS
+    && SWARM_SPEC_N_EVADERS <= 2 && SWARM_OBS_ASSIGNED_COLS == 1) ? 1 : -1];
+
+static void fill_assigned(const swarm_world_t *w, uint32_t now_ms, const float *targets, float *out)
+{
+    const swarm_agent_t *me = &w->agents[w->self];
+    const int i = w->self;
+    int k;
+    for (k = 0; k < SWARM_OBS_ASSIGNED_ROWS; ++k) out[k] = 0.0f;
+    if (i >= SWARM_SPEC_N_PURSUERS) return;
+#if SWARM_SPEC_N_EVADERS == 1
+    out[0] = targets[SWARM_OBS_TARGETS_KNOWN];
+#else
+    {
+        const int kn0 = targets[SWARM_OBS_TARGETS_KNOWN] == 1.0f;
+        const int kn1 = targets[SWARM_OBS_TARGETS_COLS + SWARM_OBS_TARGETS_KNOWN] == 1.0f;
+        const swarm_agent_t *e0 = &w->agents[SWARM_N_TEAM], *e1 = &w->agents[SWARM_N_TEAM + 1];
+        const float tx0 = SWARM_SPEC_FULL_OBSERVABILITY ? e0->x : e0->seen_x;
+        const float ty0 = SWARM_SPEC_FULL_OBSERVABILITY ? e0->y : e0->seen_y;
+        const float tx1 = SWARM_SPEC_FULL_OBSERVABILITY ? e1->x : e1->seen_x;
+        const float ty1 = SWARM_SPEC_FULL_OBSERVABILITY ? e1->y : e1->seen_y;
+        float diff[SWARM_SPEC_N_PURSUERS], own;
+        int j, m = 0, neg = 0, ahead = 0, slots, c;
+        if (!(kn0 && kn1)) {
+            out[0] = kn0 ? 1.0f : 0.0f;
+            out[1] = kn1 ? 1.0f : 0.0f;
+            return;
+        }
+        for (j = 0; j < SWARM_SPEC_N_PURSUERS; ++j) {
+            const swarm_agent_t *a = &w->agents[j];
+            const float dx0 = a->x - tx0, dy0 = a->y - ty0, dx1 = a->x - tx1, dy1 = a->y - ty1;
+            diff[j] = sqrtf(dx0 * dx0 + dy0 * dy0) - sqrtf(dx1 * dx1 + dy1 * dy1);
+        }
+        own = diff[i];
+        for (j = 0; j < SWARM_SPEC_N_PURSUERS; ++j) {
+            const swarm_agent_t *a = &w->agents[j];
+            if (j != i && (!a->heard || now_ms - a->heard_ms > SWARM_PEER_TIMEOUT_MS
+                           || (!SWARM_SPEC_FULL_OBSERVABILITY
+                               && dist2(a, me->x, me->y) > SWARM_SPEC_COMM_RANGE * SWARM_SPEC_COMM_RANGE)))
+                continue;  /* not heard: not in this drone's split */
+            ++m;
+            neg += diff[j] < 0.0f;
+            ahead += diff[j] < own || (diff[j] == own && j < i);
+        }
+        slots = (m + 1) / 2;
+        c = neg < m - slots ? m - slots : neg > slots ? slots : neg;
+        out[0] = ahead < c ? 1.0f : 0.0f;
+        out[1] = ahead < c ? 0.0f : 1.0f;
+    }
+#endif
+    (void)now_ms;
+    (void)me;
+}
+#endif
+
 void swarm_build_observation(const swarm_world_t *w, uint32_t now_ms, float obs[SWARM_POLICY_OBS_DIM])
 {
     const swarm_agent_t *me = &w->agents[w->self];
@@ -247,6 +307,9 @@ void swarm_build_observation(const swarm_world_t *w, uint32_t now_ms, float obs[
     fill_targets(w, now_ms, obs + SWARM_OBS_TARGETS_START);
     fill_agents(w, now_ms, 0, SWARM_N_TEAM, SWARM_SPEC_COMM_RANGE, SWARM_OBS_TEAMMATES_ROWS,
                 obs + SWARM_OBS_TEAMMATES_START);
+#ifdef SWARM_OBS_ASSIGNED_START
+    fill_assigned(w, now_ms, obs + SWARM_OBS_TARGETS_START, obs + SWARM_OBS_ASSIGNED_START);
+#endif
 #endif
 }
 
