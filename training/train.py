@@ -275,7 +275,10 @@ class Trainer:
 
     def _truncate_csv(self, step: int) -> None:
         path = self.out / "metrics.csv"
-        rows = list(csv.reader(path.open())) if path.is_file() else []
+        rows: list[list[str]] = []
+        if path.is_file():
+            with path.open(newline="") as fh:
+                rows = list(csv.reader(fh))
         keep = [CSV_COLUMNS] + [r for r in rows[1:] if r and int(r[0]) <= step]
         with path.open("w", newline="") as fh:
             csv.writer(fh).writerows(keep)
