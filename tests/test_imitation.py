@@ -235,11 +235,25 @@ def test_imitation_obstacle_weight_weighs_the_rows_next_to_an_obstacle():
         assert torch.equal(wb[i], want), (i, role, wb[i])
     plain = MADDPG(spec, dataclasses.replace(tc, imitation_obstacle_weight=1.0))
     assert plain._obstacle is None and plain._near is None
+    # the walls counted too: rows 2 and 3 (no obstacle near) with the body 0.1 m and 0.31 m from a wall
+    walls = MADDPG(spec, dataclasses.replace(tc, imitation_obstacle_walls=True))
+    hw = spec.arena.half_width
+    for i, role in enumerate(spec.roles):
+        f = spec.layout(role)["self_pos"]
+        r = spec.per_agent("radius")[i]
+        obs[:, i, f.start:f.start + 2] = 0.0
+        obs[2, i, f.start] = -(hw - r - 0.1)  # x: 0.1 m from the left wall
+        obs[3, i, f.start + 1] = hw - r - 0.31  # y: 0.31 m from the top wall
+    ww = walls.near_weights(obs)
+    for i, role in enumerate(spec.roles):
+        assert torch.equal(ww[i], torch.tensor([3.0, 3.0, 3.0, 1.0])), (i, role, ww[i])
+    assert torch.equal(agent.near_weights(obs), torch.tensor([3.0, 3.0, 1.0, 1.0]).expand(n, k))  # walls off
 
 
 @pytest.mark.parametrize("train, field", [
     ({"imitation_obstacle_weight": 0.0}, "train.imitation_obstacle_weight"),
     ({"imitation_obstacle_radius": float("nan")}, "train.imitation_obstacle_radius"),
+    ({"imitation_obstacle_walls": True}, "train.imitation_obstacle_walls"),
     ({"imitation_near_weight": 0.0}, "train.imitation_near_weight"),
     ({"imitation_near_weight": float("inf")}, "train.imitation_near_weight"),
     ({"imitation_near_radius": -0.5}, "train.imitation_near_radius"),

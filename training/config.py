@@ -250,6 +250,10 @@ class TrainConfig:
     imitation_obstacle_radius: float = 0.3
     """[m] How near an obstacle's surface makes a row "near" for ``imitation_obstacle_weight`` (0.3: where the
     classical teacher's obstacle avoidance starts)."""
+    imitation_obstacle_walls: bool = False
+    """Count the arena's walls with the obstacles for ``imitation_obstacle_weight``: a row whose agent's body is
+    within ``imitation_obstacle_radius`` of a wall weighs it too (the perimeter runner keeps its pursuers there,
+    where the teacher's wall damping and the avoidance layer's wall barrier meet)."""
     es_iterations: int = 0
     """After the MADDPG steps: iterations of evolution strategies on the pursuer team's actors, scored on the
     evaluation's metrics against the training pool and the frozen co-trained evaders (``training.es``); 0: none.
@@ -390,6 +394,11 @@ class TrainConfig:
         if not (math.isfinite(self.imitation_obstacle_weight) and self.imitation_obstacle_weight > 0):
             raise SpecError(f"train.imitation_obstacle_weight: must be a finite number > 0 (1: unweighted), got "
                             f"{self.imitation_obstacle_weight!r}")
+        if not isinstance(self.imitation_obstacle_walls, bool):
+            raise SpecError(f"train.imitation_obstacle_walls: must be true or false, got {self.imitation_obstacle_walls!r}")
+        if self.imitation_obstacle_walls and self.imitation_obstacle_weight == 1.0:
+            raise SpecError("train.imitation_obstacle_walls: weighs the rows next to a wall by "
+                            "train.imitation_obstacle_weight, which is 1 (unweighted): set it, or the walls to false")
         if not (math.isfinite(self.imitation_obstacle_radius) and self.imitation_obstacle_radius > 0):
             raise SpecError(f"train.imitation_obstacle_radius: must be a finite distance > 0 [m], got "
                             f"{self.imitation_obstacle_radius!r}")

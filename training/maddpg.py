@@ -418,6 +418,7 @@ class MADDPG:
         self._obs_lo, self._obs_span = lo.to(dev), (hi - lo).to(dev)
         self._near = _near_columns(spec, dev) if cfg.imitation_near_weight != 1.0 else None
         self._obstacle = _obstacle_columns(spec, dev) if cfg.imitation_obstacle_weight != 1.0 else None
+        self._walls = _wall_columns(spec, dev) if cfg.imitation_obstacle_walls else None
         self._in_scale = self._in_shift = None
         if cfg.obs_scaling:  # x -> gain (2 (x - lo) / span - 1); padding columns (span 0) stay 0
             span = hi - lo
@@ -582,7 +583,7 @@ class MADDPG:
         t = teach.transpose(0, 1)  # [N, K, 2]
         has = torch.isfinite(t).all(-1)  # [N, K]
         sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros((), device=mu.device))
-        if (self._near is None and self._obstacle is None) or obs is None:
+        if (self._near is None and self._obstacle is None and self._walls is None) or obs is None:
             return sq.sum(1) / has.sum(1).clamp(min=1)
         w = has * self.near_weights(obs)
         return (sq * w).sum(1) / w.sum(1).clamp(min=1e-12)
@@ -591,7 +592,7 @@ class MADDPG:
         """[N, K] cloning-row weights of the raw observations ``obs`` [K, N, D]: ``train.imitation_near_weight``
         where agent n sees a known target within ``train.imitation_near_radius`` (agents that observe no targets:
         never), times ``train.imitation_obstacle_weight`` where it is within ``train.imitation_obstacle_radius`` of
-        an obstacle's surface; 1 elsewhere."""
+        an obstacle's surface (with ``train.imitation_obstacle_walls``: or of a wall); 1 elsewhere."""
         o = obs.transpose(0, 1)  # [N, K, D]
         w = torch.ones(o.shape[:2], dtype=o.dtype, device=o.device)
 
@@ -610,6 +611,13 @@ class MADDPG:
             v = rows(cols)  # (dx, dy, radius) of each obstacle
             surface = (v[..., 0].square() + v[..., 1].square()).sqrt() - v[..., 2] - own.view(-1, 1, 1)
             near = ((surface < self.cfg.imitation_obstacle_radius) & (v[..., 2] > 0)).any(-1)
+        else:
+            near = torch.zeros_like(w, dtype=torch.bool)
+        if self._walls is not None:
+            cols, gap0 = self._walls  # own x, y columns [N, 2]; half width minus own radius [N]
+            xy = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1))  # [N, K, 2]
+            near = near | (gap0.view(-1, 1) - xy.abs().amax(-1) < self.cfg.imitation_obstacle_radius)
+        if self._obstacle is not None or self._walls is not None:
             w = torch.where(near, w * self.cfg.imitation_obstacle_weight, w)
         return w
 
@@ -740,6 +748,14 @@ def _obstacle_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tens
     cols, _ = _field_columns(spec, "obstacles", ("dx", "dy", "radius"))
     own = torch.tensor([float(r) for r in spec.per_agent("radius")])
     return cols.to(device), own.to(device)
+
+
+def _wall_columns(spec: SwarmSpec, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """For ``train.imitation_obstacle_walls``: per agent, the observation columns of its own x, y [N, 2], and the
+    arena's half width minus its radius [N] [m] (its body's gap to the nearest wall is that minus max(|x|, |y|))."""
+    cols = torch.tensor([[spec.layout(r)["self_pos"].start + k for k in (0, 1)] for r in spec.roles])
+    gap0 = torch.tensor([spec.arena.half_width - float(r) for r in spec.per_agent("radius")])
+    return cols.to(device), gap0.to(device)
 
 
 def _index(rows: Sequence[int], n_models: int, device: torch.device) -> torch.Tensor | None:
