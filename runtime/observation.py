@@ -10,6 +10,9 @@ Target knowledge (the paper's assumption (b)): every pursuer-team agent keeps, p
 freshest sighting among teammates within comm range (one hop per period, from their previous knowledge),
 then its own sensing within ``sensing_range`` overrides. With ``observability = "full"`` every agent knows
 every evader's true state.
+
+With ``sensing.share_assignment`` the pursuers' rows end with the team's split (``_assigned``, ``runtime.spec``):
+the classical team's assignment, which each pursuer computes from the pursuers it hears and the targets it knows.
 """
 from __future__ import annotations
 
