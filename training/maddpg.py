@@ -419,6 +419,7 @@ class MADDPG:
         self._near = _near_columns(spec, dev) if cfg.imitation_near_weight != 1.0 else None
         self._obstacle = _obstacle_columns(spec, dev) if cfg.imitation_obstacle_weight != 1.0 else None
         self._walls = _wall_columns(spec, dev) if cfg.imitation_obstacle_walls else None
+        self._weighted_rows = any(x is not None for x in (self._near, self._obstacle, self._walls))
         self._in_scale = self._in_shift = None
         if cfg.obs_scaling:  # x -> gain (2 (x - lo) / span - 1); padding columns (span 0) stay 0
             span = hi - lo
@@ -583,7 +584,7 @@ class MADDPG:
         t = teach.transpose(0, 1)  # [N, K, 2]
         has = torch.isfinite(t).all(-1)  # [N, K]
         sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros((), device=mu.device))
-        if (self._near is None and self._obstacle is None and self._walls is None) or obs is None:
+        if not self._weighted_rows or obs is None:
             return sq.sum(1) / has.sum(1).clamp(min=1)
         w = has * self.near_weights(obs)
         return (sq * w).sum(1) / w.sum(1).clamp(min=1e-12)
@@ -606,19 +607,19 @@ class MADDPG:
             r = self.cfg.imitation_near_radius
             near = ((v[..., 0].square() + v[..., 1].square() < r * r) & (v[..., 2] > 0.5)).any(-1) & sees.view(-1, 1)
             w = torch.where(near, self.cfg.imitation_near_weight, w)
+        hazard: torch.Tensor | None = None  # [N, K] rows next to an obstacle (or a wall)
         if self._obstacle is not None:
             cols, own = self._obstacle
             v = rows(cols)  # (dx, dy, radius) of each obstacle
             surface = (v[..., 0].square() + v[..., 1].square()).sqrt() - v[..., 2] - own.view(-1, 1, 1)
-            near = ((surface < self.cfg.imitation_obstacle_radius) & (v[..., 2] > 0)).any(-1)
-        else:
-            near = torch.zeros_like(w, dtype=torch.bool)
+            hazard = ((surface < self.cfg.imitation_obstacle_radius) & (v[..., 2] > 0)).any(-1)
         if self._walls is not None:
             cols, gap0 = self._walls  # own x, y columns [N, 2]; half width minus own radius [N]
             xy = torch.gather(o, 2, cols.unsqueeze(1).expand(-1, o.shape[1], -1))  # [N, K, 2]
-            near = near | (gap0.view(-1, 1) - xy.abs().amax(-1) < self.cfg.imitation_obstacle_radius)
-        if self._obstacle is not None or self._walls is not None:
-            w = torch.where(near, w * self.cfg.imitation_obstacle_weight, w)
+            wall = gap0.view(-1, 1) - xy.abs().amax(-1) < self.cfg.imitation_obstacle_radius
+            hazard = wall if hazard is None else hazard | wall
+        if hazard is not None:
+            w = torch.where(hazard, w * self.cfg.imitation_obstacle_weight, w)
         return w
 
     def clone_step(self, obs: torch.Tensor, teach: torch.Tensor) -> float:
