@@ -3,6 +3,7 @@ TD3+BC), tested on the learner and on a short run."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -261,3 +262,99 @@ def test_imitation_obstacle_weight_weighs_the_rows_next_to_an_obstacle():
 def test_bad_near_weights_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace(".", r"\.")):
         _cfg(teacher="classical", **train)
+
+
+@pytest.mark.parametrize("train, field", [
+    ({"teacher": "classical", "imitation_steps": 100, "imitation_polish_steps": -1}, "train.imitation_polish_steps"),
+    ({"teacher": "classical", "imitation_steps": 100, "imitation_polish_steps": True}, "train.imitation_polish_steps"),
+    ({"teacher": "classical", "imitation_steps": 100, "imitation_polish_steps": 2.5}, "train.imitation_polish_steps"),
+    ({"teacher": "classical", "imitation_polish_steps": 10}, "train.imitation_polish_steps"),
+])
+def test_bad_polish_settings_name_the_field(train, field):
+    with pytest.raises(SpecError, match=field.replace(".", r"\.")):
+        _cfg(**train)
+
+
+def test_kept_rows_puts_the_other_roles_actors_and_moments_back():
+    """Cloning the team only (``clone_step(..., only)``) inside ``kept_rows(evaders)``: the team's actors learn,
+    the evaders' weights and Adam moments are those from before, bit for bit (Adam's momentum alone would move
+    them), with and without one actor per role."""
+    for share in (True, False):
+        cfg = _cfg(teacher="classical", imitation_steps=100, share_params=share)
+        spec = cfg.spec
+        agent = MADDPG(spec, cfg.train)
+        g = torch.Generator().manual_seed(1)
+        k, n, d = 256, spec.n_agents, spec.max_obs_dim
+        obs = torch.rand(k, n, d, generator=g) * 2 - 1
+        teach = torch.tanh(3 * obs[..., :2] - obs[..., 2:4])
+        for _ in range(3):  # Adam has moments for every model before the block
+            agent.clone_step(obs, teach)
+        nt = spec.team.n_team
+        ev = [agent.model_of[i] for i in range(nt, n)]
+        tm = [agent.model_of[i] for i in range(nt)]
+        before = [w.detach().clone() for w in agent.actors.parameters()]
+        team = torch.zeros(n)
+        team[:nt] = 1.0
+        first = agent.clone_step(obs, teach, team)  # outside the block: the evaders' rows drift on momentum
+        drifted = [w.detach().clone() for w in agent.actors.parameters()]
+        assert any(not torch.equal(a[ev], b[ev]) for a, b in zip(drifted, before))
+        st = agent.actor_opt.opt.state[agent.actor_opt.param]
+        moments = {key: st[key].clone() for key in ("exp_avg", "exp_avg_sq")}
+        with agent.kept_rows(range(nt, n)):
+            for _ in range(20):
+                last = agent.clone_step(obs, teach, team)
+        assert last < first
+        for a, b in zip(agent.actors.parameters(), drifted):
+            assert torch.equal(a.detach()[ev], b[ev])  # as they were when the block began
+            assert not torch.equal(a.detach()[tm], b[tm])  # the team's actors learned
+        off = 0
+        for p in agent.actor_opt.flat.params:
+            nel = p.numel()
+            for key, was in moments.items():
+                now = st[key][off:off + nel].view_as(p)
+                assert torch.equal(now[ev], was[off:off + nel].view_as(p)[ev]), key
+                assert not torch.equal(now[tm], was[off:off + nel].view_as(p)[tm]), key
+            off += nel
+
+
+def test_polish_clones_the_team_after_dagger_and_resumes_exactly(tmp_path, monkeypatch):
+    """``train.imitation_polish_steps``: that many cloning steps after the DAgger phase (``summary.json`` counts
+    them); the team's actors differ from a run without them, the evaders' are the same (the last env step's one
+    update is made on the same sample either way: the polish draws after it); and a run interrupted in the middle of
+    its polish and resumed ends with the same actors, bit for bit."""
+    base = dict(teacher="classical", imitation_steps=40, steps=40, batch_size=64, imitation_batch=128)
+    plain = Trainer(_cfg(**base), tmp_path / "plain")
+    plain.run(progress=False)
+    full = Trainer(_cfg(**base, imitation_polish_steps=30), tmp_path / "full")
+    full.run(progress=False)
+    assert json.loads((tmp_path / "full" / "summary.json").read_text())["polish_steps"] == 30
+    assert json.loads((tmp_path / "plain" / "summary.json").read_text())["polish_steps"] == 0
+    nt = full.spec.team.n_team
+    a_full, a_plain = full.agent.to_actors(), plain.agent.to_actors()
+    for i, (x, y) in enumerate(zip(a_full, a_plain)):
+        same = all(torch.equal(p, q) for p, q in zip(x.state_dict().values(), y.state_dict().values()))
+        assert same == (i >= nt), i
+    # interrupted after 12 polish steps, then resumed
+    calls = {"n": 0}
+    real = MADDPG.clone_step
+
+    def flaky(self, obs, teach, only=None):
+        if only is not None:
+            calls["n"] += 1
+            if calls["n"] == 13:
+                raise KeyboardInterrupt
+        return real(self, obs, teach, only)
+
+    cut = _cfg(**base, imitation_polish_steps=30, checkpoint_buffer=True)
+    monkeypatch.setattr(MADDPG, "clone_step", flaky)
+    first = Trainer(cut, tmp_path / "cut")
+    assert first.run(progress=False).interrupted
+    assert first.polished == 12
+    monkeypatch.setattr(MADDPG, "clone_step", real)
+    again = Trainer(cut, tmp_path / "cut", resume=True)
+    assert again.polished == 12
+    again.run(progress=False)
+    assert again.polished == 30
+    for x, y in zip(again.agent.to_actors(), a_full):
+        for p, q in zip(x.state_dict().values(), y.state_dict().values()):
+            assert torch.equal(p, q)

@@ -21,10 +21,11 @@ actions from the replay sample, as in the original MADDPG.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import weakref
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Iterator, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -622,18 +623,53 @@ class MADDPG:
             w = torch.where(hazard, w * self.cfg.imitation_obstacle_weight, w)
         return w
 
-    def clone_step(self, obs: torch.Tensor, teach: torch.Tensor) -> float:
+    def clone_step(self, obs: torch.Tensor, teach: torch.Tensor, only: torch.Tensor | None = None) -> float:
         """One behaviour-cloning step of every actor (no critic, no target update) on observations ``[K, N, D]``
-        and the teacher's actions ``[K, N, 2]``; returns the mean squared distance to the teacher before it."""
+        and the teacher's actions ``[K, N, 2]``; returns the mean squared distance to the teacher before it.
+        ``only`` [N] (0/1): the loss counts these agents' rows only (the others' actors get no gradient, though
+        Adam's momentum still moves them: ``kept_rows`` keeps them as they were)."""
         cfg = self.cfg
+        mask = self.learn_mask if only is None else self.learn_mask * only
         pre = self.actors.forward_pre(obs.transpose(0, 1), self._actor_ix, self._in_scale, self._in_shift)
         bc_n = self._bc_loss(torch.tanh(pre), teach, obs)
         loss_n = bc_n + cfg.action_reg * pre.pow(2).mean((1, 2))
         self.actor_opt.zero_grad(set_to_none=True)
-        (loss_n * self._weight).sum().backward()
+        (loss_n * (self._weight if only is None else self._weight * only)).sum().backward()
         clip_grad_norm_per_agent(_params_of(self.actors, self.actor_opt), cfg.grad_clip)
         self.actor_opt.step()
-        return float((bc_n.detach() * self.learn_mask).sum() / self.learn_mask.sum())
+        return float((bc_n.detach() * mask).sum() / mask.sum().clamp(min=1))
+
+    @contextlib.contextmanager
+    def kept_rows(self, agents: Sequence[int]) -> Iterator[None]:
+        """Within the block the actors' weights and Adam moments of the models that serve ``agents`` may change;
+        on leaving it they are put back as they were (Adam's step count, one for every model, goes on; cloning
+        steps leave the target actors alone). Needs ``FlatAdam`` actors whose every parameter has one row per model
+        (``BatchedMLP``)."""
+        flat = self.actor_opt.flat
+        rows = torch.zeros(self.n_models, dtype=torch.bool, device=self.device)
+        rows[[self.model_of[i] for i in agents]] = True
+        parts = []
+        for p in flat.params:
+            if p.shape[0] != self.n_models:
+                raise ValueError(f"an actor parameter of shape {tuple(p.shape)} has no row per model "
+                                 f"({self.n_models}): kept_rows needs BatchedMLP actors")
+            parts.append(rows.view(-1, *([1] * (p.dim() - 1))).expand_as(p).reshape(-1))
+        keep = torch.cat(parts)
+        if not bool(keep.any()):
+            yield
+            return
+        st = self.actor_opt.opt.state.get(self.actor_opt.param, {})
+        moments = {k: v[keep].clone() for k, v in st.items() if k in ("exp_avg", "exp_avg_sq")}
+        saved = flat.data[keep].clone()
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                flat.data[keep] = saved
+                st = self.actor_opt.opt.state.get(self.actor_opt.param, {})
+                for k, v in moments.items():
+                    if k in st:
+                        st[k][keep] = v
 
     def int8_sensitivity(self, obs: torch.Tensor, worst: float = 0.05) -> torch.Tensor:
         """Per agent [N]: the mean squared change of the actions on ``obs`` [N, K, D] and on K observations

@@ -188,11 +188,14 @@ class Trainer:
             pursuers.obstacle_side_softness = tc.teacher_obstacle_softness
             self.teacher = TeamPolicy(pursuers, FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
+        # the polish's own sample stream, so that the run's others are those of a run without it
+        self.polish_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 6)
         self._learns = self.agent.learn_mask.cpu().numpy() > 0  # [N] agents whose actors train
         self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
         self.sample_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 1)
         self.noise_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 2)
         self.env_step = 0
+        self.polished = 0  # cloning steps done of train.imitation_polish_steps
         self.elapsed = 0.0  # training wall time of previous sessions [s]
         team = cfg.spec.team
         self.role_idx = {r.label: np.asarray(team.indices(r)) for r in Role if len(team.indices(r))}
@@ -242,6 +245,9 @@ class Trainer:
         self.env.world.rng.bit_generator.state = st["world_rng"]
         if "teacher_rng" in st:
             self.teacher_rng.bit_generator.state = st["teacher_rng"]
+        self.polished = int(st.get("polished", 0))  # absent in checkpoints written before the polish
+        if "polish_gen" in st:
+            self.polish_gen.set_state(st["polish_gen"].cpu() if self.tc.device == "cpu" else st["polish_gen"])
         if "opponents" in st:
             self.mixer.load_state_dict(st["opponents"], self.agent.frozen_actors())
             self.mixer.rng.bit_generator.state = st["opponent_rng"]
@@ -290,7 +296,8 @@ class Trainer:
               "sample_gen": self.sample_gen.get_state(), "noise_gen": self.noise_gen.get_state(),
               "np_rng": self.np_rng.bit_generator.state, "world_rng": self.env.world.rng.bit_generator.state,
               "config": self.cfg.to_dict(), "opponents": self.mixer.state_dict(),
-              "opponent_rng": self.mixer.rng.bit_generator.state, "teacher_rng": self.teacher_rng.bit_generator.state}
+              "opponent_rng": self.mixer.rng.bit_generator.state, "teacher_rng": self.teacher_rng.bit_generator.state,
+              "polished": self.polished, "polish_gen": self.polish_gen.get_state()}
         if self.tc.checkpoint_buffer:
             _save_torch(self.buffer.state_dict(), self.ckpt_dir / "buffer.pt")
         _save_torch(st, self.ckpt_dir / "state.pt")
@@ -398,6 +405,8 @@ class Trainer:
         restore = install_stop_handlers()
         pending = None  # the last step's transitions, stored once the next actions are known
         try:
+            if self.env_step < tc.steps and self._polish(progress) and self.env_step == tc.imitation_steps:
+                self._save_imitation()  # a run resumed (or started from another) where its polish was due
             while self.env_step < tc.steps:
                 actions, given, teach = self._actions(obs)
                 if pending is not None:
@@ -416,11 +425,8 @@ class Trainer:
                 if self.mixer.snapshot_due(self.env_step):  # one actor row per agent, on raw obs
                     self.mixer.add_snapshot(self.agent.frozen_actors())
                 self._record(win, rew, done, info)
-                if self.env_step == tc.imitation_steps < tc.steps:  # the cloned team, before RL takes over
-                    save_actors(self.out / "actors_imitation.pt", self.spec, self.agent.to_actors(),
-                                self.cfg.to_dict(), {"git_revision": git_revision(), "env_steps": self.env_step,
-                                                     "updates": self.agent.updates, "run": str(self.out),
-                                                     "phase": "imitation"})
+                if self.env_step == tc.imitation_steps < tc.steps and not tc.imitation_polish_steps:
+                    self._save_imitation()  # the cloned team, before RL takes over
                 imitation = self.imitating()
                 if ((self.env_step >= tc.warmup_steps or imitation) and len(self.buffer) >= tc.batch_size
                         and self.env_step % tc.update_every == 0):
@@ -435,6 +441,9 @@ class Trainer:
                             o, t = self.buffer.sample_fields(tc.imitation_batch, self.sample_gen, ("obs", "teach"))
                             win.clone_mse += self.agent.clone_step(o, t)
                             win.n_clone += 1
+                if tc.imitation_polish_steps and self.env_step == tc.imitation_steps < tc.steps:
+                    self._polish(progress)  # after this step's updates, before RL takes over
+                    self._save_imitation()
                 if bar is not None:
                     bar.update(1)
                 if self.env_step % tc.log_every == 0 or self.env_step == tc.steps:
@@ -448,6 +457,11 @@ class Trainer:
                     win.reset()
                 if self.env_step % tc.checkpoint_every == 0 and self.env_step < tc.steps:
                     self.save_checkpoint()
+            if self._polish_due():  # the imitation phase ends the run: the polish clones from all of it
+                if pending is not None:
+                    self._store(pending, None, None)
+                    pending = None
+                self._polish(progress)
         except KeyboardInterrupt:
             interrupted = True
             log.warning("interrupted at env step %d: saving a checkpoint (continue with --resume)", self.env_step)
@@ -465,12 +479,70 @@ class Trainer:
         session = self._session_time()
         result = TrainResult(self.out, self.env_step, (self.env_step - start_step) * tc.n_envs,
                              self.agent.updates - start_updates, session, interrupted)
-        summary = {**result.to_dict(), "es_iterations": es_iterations,
+        summary = {**result.to_dict(), "es_iterations": es_iterations, "polish_steps": self.polished,
                    "total_env_steps": self.env_step, "total_frames": self.env_step * tc.n_envs,
                    "total_updates": self.agent.updates, "total_train_time_s": round(self.elapsed + session, 3),
                    "torch_threads": torch.get_num_threads(), "device": tc.device, "finished_utc": _utc_now()}
         write_text_atomic(self.out / "summary.json", json.dumps(summary, indent=2) + "\n")
         return result
+
+    def _save_imitation(self) -> None:
+        save_actors(self.out / "actors_imitation.pt", self.spec, self.agent.to_actors(), self.cfg.to_dict(),
+                    {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
+                     "run": str(self.out), "phase": "imitation"})
+
+    def _polish_due(self) -> bool:
+        tc = self.tc
+        return bool(tc.imitation_polish_steps) and self.env_step >= tc.imitation_steps \
+            and self.polished < tc.imitation_polish_steps
+
+    def _polish(self, progress: bool) -> bool:
+        """``train.imitation_polish_steps`` cloning steps of the team's actors on the replay buffer once the imitation
+        phase is over (at the end of the env step that ends it, after its updates; where it ends the run, after its
+        last transitions are stored; none before it, nor once done), from their own sample stream. The evaders' actors and Adam's moments for them are kept as they were
+        (``MADDPG.kept_rows``). Returns whether it cloned. An interruption keeps the steps
+        done so far; ``--resume`` does the rest (and with the polish on, ``actors_imitation.pt`` is saved after
+        it)."""
+        tc = self.tc
+        if not self._polish_due():
+            return False
+        if len(self.buffer) == 0:
+            raise RunError("train.imitation_polish_steps: the replay buffer is empty (a run started from a "
+                           "checkpoint saved without it, train.checkpoint_buffer = false): nothing to clone from")
+        nt = self.spec.team.n_team
+        team = torch.zeros(self.spec.n_agents, device=self.agent.device)
+        team[:nt] = 1.0
+        bar = None
+        if progress:
+            from tqdm import tqdm
+            bar = tqdm(total=tc.imitation_polish_steps, initial=self.polished, unit="step", desc="polish",
+                       dynamic_ncols=True, mininterval=1.0)
+        t0, first, mse, n = time.perf_counter(), self.polished, 0.0, 0
+        try:
+            with self.agent.kept_rows(range(nt, self.spec.n_agents)):
+                while self.polished < tc.imitation_polish_steps:
+                    g0 = self.polish_gen.get_state()
+                    try:
+                        o, t = self.buffer.sample_fields(tc.imitation_batch, self.polish_gen, ("obs", "teach"))
+                        mse += self.agent.clone_step(o, t, team)
+                    except KeyboardInterrupt:  # this step is not counted: --resume draws its sample again
+                        self.polish_gen.set_state(g0)
+                        raise
+                    n += 1
+                    self.polished += 1
+                    if bar is not None:
+                        bar.update(1)
+                    if self.polished % 1000 == 0 or self.polished == tc.imitation_polish_steps:
+                        log.info("polish: %d/%d cloning steps, the team's clone error %.5f (last %d steps)",
+                                 self.polished, tc.imitation_polish_steps, mse / max(n, 1), n)
+                        if bar is not None:
+                            bar.set_postfix_str(f"mse={mse / max(n, 1):.4f}", refresh=False)
+                        mse, n = 0.0, 0
+        finally:
+            if bar is not None:
+                bar.close()
+        log.info("polish: %d cloning steps in %.1f s", self.polished - first, time.perf_counter() - t0)
+        return True
 
     # -- evolution strategies after the MADDPG steps (train.es_iterations) ---------------------------
     def _run_es(self, progress: bool) -> tuple[int, bool]:
