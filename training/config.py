@@ -259,8 +259,8 @@ class TrainConfig:
     (pursuers and scouts), each on its own replay sample of ``imitation_batch`` transitions, with no env steps,
     before reinforcement learning or ES go on. The clone is still learning the aggregated DAgger data when the
     phase ends (on the last 16,384 stored transitions, held out, 12,000 more steps cut the pursuers' error by a
-    quarter: results/README.md, fifteenth attempt). The evaders' actors stay as the DAgger phase left them.
-    0: none."""
+    quarter: results/README.md, fifteenth attempt; yet ES from the closer clone did worse on the held-out evaders, so
+    the shipped configs leave it off). The evaders' actors stay as the DAgger phase left them. 0: none."""
     es_iterations: int = 0
     """After the MADDPG steps: iterations of evolution strategies on the pursuer team's actors, scored on the
     evaluation's metrics against the training pool and the frozen co-trained evaders (``training.es``); 0: none.
