@@ -499,10 +499,10 @@ class Trainer:
     def _polish(self, progress: bool) -> bool:
         """``train.imitation_polish_steps`` cloning steps of the team's actors on the replay buffer once the imitation
         phase is over (at the end of the env step that ends it, after its updates; where it ends the run, after its
-        last transitions are stored; none before it, nor once done), from their own sample stream. The evaders' actors and Adam's moments for them are kept as they were
-        (``MADDPG.kept_rows``). Returns whether it cloned. An interruption keeps the steps
-        done so far; ``--resume`` does the rest (and with the polish on, ``actors_imitation.pt`` is saved after
-        it)."""
+        last transitions are stored; none before it, nor once done), from their own sample stream. The evaders'
+        actors and Adam's moments for them are kept as they were (``MADDPG.kept_rows``). Returns whether it cloned.
+        An interruption keeps the steps done so far; ``--resume`` does the rest (and with the polish on,
+        ``actors_imitation.pt`` is saved after it)."""
         tc = self.tc
         if not self._polish_due():
             return False
