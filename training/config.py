@@ -362,7 +362,7 @@ class TrainConfig:
                             f"{self.imitation_steps!r}")
         if not self.imitation_weight >= 0:
             raise SpecError(f"train.imitation_weight: must be >= 0, got {self.imitation_weight!r}")
-        for name in ("imitation_decay_steps", "imitation_updates"):
+        for name in ("imitation_decay_steps", "imitation_updates", "imitation_polish_steps"):
             if getattr(self, name) < 0:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.es_iterations < 0:
@@ -401,8 +401,6 @@ class TrainConfig:
         if not (math.isfinite(self.imitation_obstacle_weight) and self.imitation_obstacle_weight > 0):
             raise SpecError(f"train.imitation_obstacle_weight: must be a finite number > 0 (1: unweighted), got "
                             f"{self.imitation_obstacle_weight!r}")
-        if not isinstance(self.imitation_obstacle_walls, bool):
-            raise SpecError(f"train.imitation_obstacle_walls: must be true or false, got {self.imitation_obstacle_walls!r}")
         if self.imitation_obstacle_walls and self.imitation_obstacle_weight == 1.0:
             raise SpecError("train.imitation_obstacle_walls: weighs the rows next to a wall by "
                             "train.imitation_obstacle_weight, which is 1 (unweighted): set it, or the walls to false")
@@ -412,10 +410,6 @@ class TrainConfig:
         if not (math.isfinite(self.imitation_near_radius) and self.imitation_near_radius > 0):
             raise SpecError(f"train.imitation_near_radius: must be a finite distance > 0 [m], got "
                             f"{self.imitation_near_radius!r}")
-        if not isinstance(self.imitation_polish_steps, int) or isinstance(self.imitation_polish_steps, bool) \
-                or self.imitation_polish_steps < 0:
-            raise SpecError(f"train.imitation_polish_steps: must be a whole number >= 0 (0: none), got "
-                            f"{self.imitation_polish_steps!r}")
         if self.imitation_polish_steps and not (self.imitation_steps and self.teacher != "none"):
             raise SpecError("train.imitation_polish_steps: polishes the clone of a DAgger phase, and this config has "
                             "none: set train.teacher and train.imitation_steps, or imitation_polish_steps = 0")
@@ -436,7 +430,7 @@ class TrainConfig:
         if self.obs_offset_gain != 1.0 and not self.obs_scaling:
             raise SpecError(f"train.obs_offset_gain = {self.obs_offset_gain!r} scales the scaled inputs: set "
                             f"train.obs_scaling = true, or leave obs_offset_gain at 1")
-        for name in ("share_params", "obs_scaling"):
+        for name in ("share_params", "obs_scaling", "imitation_obstacle_walls"):
             if not isinstance(getattr(self, name), bool):
                 raise SpecError(f"train.{name}: must be true or false, got {getattr(self, name)!r}")
 

@@ -629,12 +629,13 @@ class MADDPG:
         ``only`` [N] (0/1): the loss counts these agents' rows only (the others' actors get no gradient, though
         Adam's momentum still moves them: ``kept_rows`` keeps them as they were)."""
         cfg = self.cfg
-        mask = self.learn_mask if only is None else self.learn_mask * only
+        mask, weight = (self.learn_mask, self._weight) if only is None else \
+            (self.learn_mask * only, self._weight * only)
         pre = self.actors.forward_pre(obs.transpose(0, 1), self._actor_ix, self._in_scale, self._in_shift)
         bc_n = self._bc_loss(torch.tanh(pre), teach, obs)
         loss_n = bc_n + cfg.action_reg * pre.pow(2).mean((1, 2))
         self.actor_opt.zero_grad(set_to_none=True)
-        (loss_n * (self._weight if only is None else self._weight * only)).sum().backward()
+        (loss_n * weight).sum().backward()
         clip_grad_norm_per_agent(_params_of(self.actors, self.actor_opt), cfg.grad_clip)
         self.actor_opt.step()
         return float((bc_n.detach() * mask).sum() / mask.sum().clamp(min=1))

@@ -22,7 +22,8 @@ from training.train import Trainer  # noqa: E402
 run, n = Path(sys.argv[1]), int(sys.argv[2])
 mode = sys.argv[3] if len(sys.argv) > 3 else "const"
 cfg = ExperimentConfig.from_toml(run / "config.toml")
-tr = Trainer(cfg, tempfile.mkdtemp(prefix="polish_probe_"), init_from=run)
+scratch = tempfile.TemporaryDirectory(prefix="polish_probe_")  # the Trainer's run folder, removed at exit
+tr = Trainer(cfg, scratch.name, init_from=run)
 ag, buf = tr.agent, tr.buffer
 held = 16384
 train_n = buf.size - held  # the buffer was loaded oldest first: the newest transitions are the last rows
@@ -31,13 +32,12 @@ o_ev, t_ev = buf.obs[train_n:buf.size], buf.teach[train_n:buf.size]
 
 def clone_error() -> tuple[dict[str, float], dict[str, float]]:
     with torch.no_grad():
-        pre = ag.actors.forward_pre(o_ev.transpose(0, 1), ag._actor_ix, ag._in_scale, ag._in_shift)
+        mu = torch.tanh(ag.actors.forward_pre(o_ev.transpose(0, 1), ag._actor_ix, ag._in_scale, ag._in_shift))
         t = t_ev.transpose(0, 1)
         has = torch.isfinite(t).all(-1)
-        sq = torch.where(has, (torch.tanh(pre) - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros(()))
+        sq = torch.where(has, (mu - torch.nan_to_num(t)).pow(2).sum(-1), torch.zeros(()))
         plain = sq.sum(1) / has.sum(1).clamp(min=1)
-        w = has * ag.near_weights(o_ev)
-        weighted = (sq * w).sum(1) / w.sum(1).clamp(min=1e-12)
+        weighted = ag._bc_loss(mu, t_ev, o_ev)  # the loss the clone is trained on (the run's row weights)
     return ({r: round(float(plain[ix].mean()), 5) for r, ix in tr.role_idx.items()},
             {r: round(float(weighted[ix].mean()), 5) for r, ix in tr.role_idx.items()})
 
