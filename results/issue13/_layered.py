@@ -1,5 +1,6 @@
 """The classical team flown through the learned actors' avoidance layer, for the issue-13 scripts beside this file
-(classical_layer.py, layer_params.py, teacher_layer.py)."""
+(classical_layer.py, layer_params.py, teacher_layer.py, teacher_lead.py, teacher_pincer.py, wall_probe.py), and the
+suite line that teacher_lead.py and teacher_pincer.py print."""
 from __future__ import annotations
 
 from typing import Any, Callable
@@ -8,7 +9,9 @@ import numpy as np
 
 from runtime.avoidance import avoid_agents, avoid_rows, role_tables
 from runtime.spec import SwarmSpec
-from training.baselines import ClassicalPursuers
+from training.baselines import ClassicalPursuers, TeamPolicy
+from training.evader_suite import SUITE, make_suite_evader
+from training.evaluate import evaluate, mean_of
 
 
 class LayeredClassical:
@@ -33,3 +36,13 @@ class LayeredClassical:
             avoid_rows(obs[:, i], col, params, layout)
             a[:, i] = col
         return a
+
+
+def print_suite_line(cfg: Any, label: str, make: Callable[[], Any], episodes: int) -> None:
+    """Fly a team from ``make()`` (a new one per kind) against every held-out suite kind, ``episodes`` episodes each
+    (evaluation seed 0), and print one line: the suite mean and each kind's min distance [m] / tracking."""
+    per = {kind: evaluate(cfg, TeamPolicy(make(), make_suite_evader(kind, 0)), episodes, seed=0, progress=False)
+           for kind in SUITE}
+    m = mean_of(list(per.values()))
+    print(f"{label}: suite {m['mean_min_dist']:.3f}/{m['tracking_rate']:.3f} tc {m['team_contacts_per_episode']:.2f}   "
+          + "  ".join(f"{k} {v['mean_min_dist']:.3f}/{v['tracking_rate']:.3f}" for k, v in per.items()), flush=True)

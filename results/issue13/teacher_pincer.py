@@ -20,11 +20,9 @@ import sys
 
 import numpy as np
 
-from _layered import LayeredClassical
-from training.baselines import ClassicalPursuers, TeamPolicy, _unit, assign_targets
+from _layered import LayeredClassical, print_suite_line
+from training.baselines import ClassicalPursuers, _unit, assign_targets
 from training.config import ExperimentConfig
-from training.evader_suite import SUITE, make_suite_evader
-from training.evaluate import evaluate, mean_of
 
 cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "configs/role_based.toml")
 eps = int(sys.argv[2]) if len(sys.argv) > 2 else 100
@@ -63,18 +61,10 @@ class Pincer(ClassicalPursuers):
         return _unit(np.clip(goal, -hw, hw) - pp)
 
 
-def report(label, make):
-    per = {kind: evaluate(cfg, TeamPolicy(make(), make_suite_evader(kind, 0)), eps, seed=0, progress=False)
-           for kind in SUITE}
-    m = mean_of(list(per.values()))
-    print(f"{label}: suite {m['mean_min_dist']:.3f}/{m['tracking_rate']:.3f} tc {m['team_contacts_per_episode']:.2f}   "
-          + "  ".join(f"{k} {v['mean_min_dist']:.3f}/{v['tracking_rate']:.3f}" for k, v in per.items()), flush=True)
-
-
 print(f"{cfg.name}: avoidance {cfg.spec.avoidance}")
 for v in variants:
     if v == "classical":
-        report("classical team (no layer, push 3)", ClassicalPursuers)
+        print_suite_line(cfg, "classical team (no layer, push 3)", ClassicalPursuers, eps)
         continue
     mode, *amount = v.split()
 
@@ -85,4 +75,4 @@ for v in variants:
         c.mode, c.amount = mode, amount
         t.c = c
         return t
-    report(f"teacher, {v}", make)
+    print_suite_line(cfg, f"teacher, {v}", make, eps)
