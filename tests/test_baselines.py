@@ -211,6 +211,20 @@ def test_evaluate_runs_exactly_the_episodes_asked_and_is_reproducible(role_based
     assert a == b
 
 
+def test_evaluate_hands_out_each_episode_in_order(role_based):
+    """``records_out`` gets one record per episode, in episode order (the first round's episodes first), whose
+    mean is the summary's: two teams evaluated with the same seed can be compared episode for episode."""
+    recs: list = []
+    out = evaluate(role_based, make_policy("classical", seed=0), 7, seed=11, n_envs=3, progress=False,
+                   records_out=recs)
+    assert len(recs) == 7
+    assert np.isclose(np.mean([r.min_dist for r in recs]), out["mean_min_dist"])
+    assert np.isclose(np.mean([r.tracking_rate for r in recs]), out["tracking_rate"])
+    first: list = []
+    evaluate(role_based, make_policy("classical", seed=0), 3, seed=11, n_envs=3, progress=False, records_out=first)
+    assert recs[:3] == first
+
+
 @pytest.mark.slow  # 200 episodes: about a minute on a busy core
 def test_the_classical_team_is_at_least_as_strong_as_its_recorded_baseline(role_based):
     """The bar learned teams are measured against must not drop: the classical team, re-run with the settings

@@ -51,9 +51,11 @@ def eval_seed(seed: int, round_index: int) -> np.random.SeedSequence:
 
 
 def evaluate(cfg: ExperimentConfig, policy: Policy, episodes: int, seed: int = 0, n_envs: int = 50,
-             progress: bool = True, desc: str | None = None) -> dict[str, float]:
+             progress: bool = True, desc: str | None = None, records_out: list | None = None) -> dict[str, float]:
     """Runs exactly ``episodes`` episodes of ``policy`` in ``cfg``'s world and returns ``summarize``'s dict
-    (keys ``runtime.metrics.METRIC_KEYS``) plus ``wall_s``, the seconds it took."""
+    (keys ``runtime.metrics.METRIC_KEYS``) plus ``wall_s``, the seconds it took. ``records_out``: a list that
+    receives every episode's ``runtime.metrics.EpisodeRecord``, in episode order (the same order for every policy
+    evaluated with the same ``seed``, ``episodes`` and ``n_envs``: the episodes are paired)."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if n_envs < 1:
@@ -74,6 +76,8 @@ def evaluate(cfg: ExperimentConfig, policy: Policy, episodes: int, seed: int = 0
         records += info["episodes"]
         bar.update(b)
     bar.close()
+    if records_out is not None:
+        records_out.extend(records)
     out: dict[str, float] = summarize(records)
     out["wall_s"] = time.perf_counter() - t0
     log.info("evaluated %d episodes of %s in %.1f s", len(records), cfg.name, out["wall_s"])

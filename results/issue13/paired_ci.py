@@ -1,0 +1,49 @@
+"""How sure is a "win"? Each run's team and the classical team meet the same episodes (same seeds, the same
+scripted evaders with the same drawn parameters), so their difference can be taken episode by episode. For each run
+and evader kind: the mean per-episode difference learned - classical in min distance [m] and in tracking rate, with
+a paired bootstrap 95% interval over the episodes (10,000 resamples), and whether the interval excludes 0. The same
+episodes as `swarm-train evaluate --episodes 200 --seed 0` (evaluation seed 0, 50 envs a round).
+
+    .venv/bin/python results/issue13/paired_ci.py RUN [RUN ...] [--evader suite:perimeter,hider,juker] [--episodes 200]
+"""
+import argparse
+
+import numpy as np
+
+from training.baselines import ClassicalPursuers, TeamPolicy
+from training.evaluate import evaluate
+from training.evader_spec import expand, label, make_evaders
+from training.learned_eval import load_source, team
+
+p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+p.add_argument("runs", nargs="+", help="run folders (runs/NAME_sS) or models folders")
+p.add_argument("--evader", default="suite:perimeter,hider,juker", help="as swarm-train evaluate's --evader")
+p.add_argument("--episodes", type=int, default=200)
+p.add_argument("--seed", type=int, default=0)
+args = p.parse_args()
+rng = np.random.default_rng(0)
+
+
+def ci(d: np.ndarray) -> tuple[float, float, float]:
+    boot = d[rng.integers(0, d.size, (10_000, d.size))].mean(1)
+    return float(d.mean()), float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))
+
+
+def cell(m: float, lo: float, hi: float, better_low: bool) -> str:
+    resolved = (hi < 0 if better_low else lo > 0) and "better" or ((lo > 0 if better_low else hi < 0) and "worse")
+    return f"{m:+.4f} [{lo:+.4f}, {hi:+.4f}]{' ' + resolved if resolved else ''}"
+
+
+print(f"{args.episodes} episodes per kind, evaluation seed {args.seed}; learned - classical, paired bootstrap 95%")
+for run in args.runs:
+    cfg, learned, name = load_source(run)
+    for kind in expand(args.evader):
+        ours: list = []
+        theirs: list = []
+        evaluate(cfg, team(learned, kind, args.seed), args.episodes, seed=args.seed, progress=False, records_out=ours)
+        evaluate(cfg, TeamPolicy(ClassicalPursuers(), make_evaders(kind, args.seed, learned)), args.episodes,
+                 seed=args.seed, progress=False, records_out=theirs)
+        dd = np.array([a.min_dist - b.min_dist for a, b in zip(ours, theirs)])
+        dt = np.array([a.tracking_rate - b.tracking_rate for a, b in zip(ours, theirs)])
+        print(f"{run:28s} {label(kind):10s} min dist {cell(*ci(dd), True):44s} tracking {cell(*ci(dt), False)}",
+              flush=True)
