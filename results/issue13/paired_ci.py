@@ -1,7 +1,9 @@
 """How sure is a "win"? Each run's team and the classical team meet the same episodes (same seeds, the same
 scripted evaders with the same drawn parameters), so their difference can be taken episode by episode. For each run
 and evader kind: the mean per-episode difference learned - classical in min distance [m] and in tracking rate, with
-a paired bootstrap 95% interval over the episodes (10,000 resamples), and whether the interval excludes 0. The same
+a paired bootstrap 95% interval over the episodes (10,000 resamples from one generator, seeded 0, drawn in the
+order printed: another selection of runs or kinds moves an interval's ends by about 0.0001), and whether the interval
+excludes 0. The same
 episodes as `swarm-train evaluate --episodes 200 --seed 0` (evaluation seed 0, 50 envs a round).
 
     .venv/bin/python results/issue13/paired_ci.py RUN [RUN ...] [--evader suite:perimeter,hider,juker] [--episodes 200]
@@ -29,9 +31,12 @@ def ci(d: np.ndarray) -> tuple[float, float, float]:
     return float(d.mean()), float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))
 
 
-def cell(m: float, lo: float, hi: float, better_low: bool) -> str:
-    resolved = (hi < 0 if better_low else lo > 0) and "better" or ((lo > 0 if better_low else hi < 0) and "worse")
-    return f"{m:+.4f} [{lo:+.4f}, {hi:+.4f}]{' ' + resolved if resolved else ''}"
+def cell(m: float, lo: float, hi: float, lower_is_better: bool) -> str:
+    """The mean difference, its interval, and "better" or "worse" when the interval excludes 0."""
+    below, above = hi < 0, lo > 0
+    verdict = ("better" if below else "worse" if above else "") if lower_is_better else \
+        ("better" if above else "worse" if below else "")
+    return f"{m:+.4f} [{lo:+.4f}, {hi:+.4f}]" + (f" {verdict}" if verdict else "")
 
 
 print(f"{args.episodes} episodes per kind, evaluation seed {args.seed}; learned - classical, paired bootstrap 95%")
