@@ -3,8 +3,7 @@ scripted evaders with the same drawn parameters), so their difference can be tak
 and evader kind: the mean per-episode difference learned - classical in min distance [m] and in tracking rate, with
 a paired bootstrap 95% interval over the episodes (10,000 resamples from one generator, seeded 0, drawn in the
 order printed: another selection of runs or kinds moves an interval's ends by about 0.0001), and whether the interval
-excludes 0. The same
-episodes as `swarm-train evaluate --episodes 200 --seed 0` (evaluation seed 0, 50 envs a round).
+excludes 0. The same episodes as `swarm-train evaluate --episodes 200 --seed 0` (evaluation seed 0, 50 envs a round).
 
     .venv/bin/python results/issue13/paired_ci.py RUN [RUN ...] [--evader suite:perimeter,hider,juker] [--episodes 200]
 """
