@@ -103,16 +103,19 @@ def team(learned: Policy, evader: str, seed: int = 0) -> Policy:
 
 
 def evaluate_kind(cfg: ExperimentConfig, learned: Policy, kind: str, episodes: int, seed: int, n_envs: int,
-                  classical: bool, progress: bool) -> dict[str, Any]:
+                  classical: bool, progress: bool, records: tuple[list, list] | None = None) -> dict[str, Any]:
     """The learned team's metrics against one evader kind, and the classical team's (key ``classical``)
-    against a fresh copy of the same evaders (scripted evaders draw the same parameters from the same seed)."""
+    against a fresh copy of the same evaders (scripted evaders draw the same parameters from the same seed).
+    ``records``: two lists that receive the learned and the classical team's episodes, paired episode for episode
+    (``evaluate``'s ``records_out``)."""
     name = label(kind)
+    ours, theirs = records or (None, None)
     out: dict[str, Any] = evaluate(cfg, team(learned, kind, seed), episodes, seed=seed, n_envs=n_envs,
-                                   progress=progress, desc=f"ours vs {name}")
+                                   progress=progress, desc=f"ours vs {name}", records_out=ours)
     if classical:
         out["classical"] = evaluate(cfg, TeamPolicy(ClassicalPursuers(), make_evaders(kind, seed, learned)),
                                     episodes, seed=seed, n_envs=n_envs, progress=progress,
-                                    desc=f"classical vs {name}")
+                                    desc=f"classical vs {name}", records_out=theirs)
     return out
 
 

@@ -11,10 +11,8 @@ import argparse
 
 import numpy as np
 
-from training.baselines import ClassicalPursuers, TeamPolicy
-from training.evaluate import evaluate
-from training.evader_spec import expand, label, make_evaders
-from training.learned_eval import load_source, team
+from training.evader_spec import expand, label
+from training.learned_eval import evaluate_kind, load_source
 
 p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("runs", nargs="+", help="run folders (runs/NAME_sS) or models folders")
@@ -44,9 +42,8 @@ for run in args.runs:
     for kind in expand(args.evader):
         ours: list = []
         theirs: list = []
-        evaluate(cfg, team(learned, kind, args.seed), args.episodes, seed=args.seed, progress=False, records_out=ours)
-        evaluate(cfg, TeamPolicy(ClassicalPursuers(), make_evaders(kind, args.seed, learned)), args.episodes,
-                 seed=args.seed, progress=False, records_out=theirs)
+        evaluate_kind(cfg, learned, kind, args.episodes, args.seed, n_envs=50, classical=True, progress=False,
+                      records=(ours, theirs))
         dd = np.array([a.min_dist - b.min_dist for a, b in zip(ours, theirs)])
         dt = np.array([a.tracking_rate - b.tracking_rate for a, b in zip(ours, theirs)])
         print(f"{run:28s} {label(kind):10s} min dist {cell(*ci(dd), True):44s} tracking {cell(*ci(dt), False)}",
