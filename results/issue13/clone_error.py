@@ -6,6 +6,12 @@ observation and compared with the teacher's label (``training.train.full_speed_l
 on): mean squared error and mean cosine between the two, binned by the pursuer's distance to the nearest evader.
 
     .venv/bin/python results/issue13/clone_error.py runs/RUN      (RUN: a run folder with actors.pt)
+        [--teacher own] [--kinds KIND,...] [--actors FILE]
+
+``--teacher own``: the labels of the run's own DAgger teacher (its ``train.teacher_separation_gain``,
+``teacher_assignment`` and ``teacher_obstacle_softness``) instead of the classical team's; ``--kinds``: the suite
+kinds flown (wanderer,hider); ``--actors``: another actors file of the run (e.g. ``snapshots/actors_005000.pt``,
+the clone before ES).
 """
 import sys
 import numpy as np, torch
@@ -18,19 +24,32 @@ from training.train import full_speed_labels
 from runtime.spec import Role
 
 run = sys.argv[1]
-print(f"{run}: pursuers against the classical team's labels, by distance to the nearest evader [m]")
+opts = dict(zip(sys.argv[2::2], sys.argv[3::2]))
+unknown = set(opts) - {"--teacher", "--kinds", "--actors"}
+if unknown or opts.get("--teacher", "own") != "own":
+    sys.exit(f"clone_error.py: unknown option(s) {sorted(unknown) or opts['--teacher']!r}: see the docstring")
+own = opts.get("--teacher") == "own"
+kinds = opts.get("--kinds", "wanderer,hider").split(",")
+actors_file = opts.get("--actors", "actors.pt")
 cfg = ExperimentConfig.from_toml(f"{run}/config.toml")
-spec, agents, _ = load_actors(f"{run}/actors.pt")
+print(f"{run} ({actors_file}): pursuers against the {'run teacher' if own else 'classical team'}'s labels on "
+      f"{','.join(kinds)}, by distance to the nearest evader [m]")
+spec, agents, _ = load_actors(f"{run}/{actors_file}")
 actors = [a for _, _, a in agents]
 P = spec.team.indices(Role.PURSUER)
 nt = spec.team.n_team
 bins = [0, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 10]
 errs = {i: [] for i in range(len(bins) - 1)}
 cos = {i: [] for i in range(len(bins) - 1)}
-for kind in ("wanderer", "hider"):
+for kind in kinds:
     env = PursuitEnv(cfg.spec, cfg.rewards, n_envs=50, seed=123)
     obs = env.reset()
-    teacher = TeamPolicy(ClassicalPursuers(), make_suite_evader(kind, 5))
+    pursuers = ClassicalPursuers()
+    if own:  # as training.train.Trainer builds its teacher
+        pursuers.separation_gain = cfg.train.teacher_separation_gain
+        pursuers.assignment = cfg.train.teacher_assignment
+        pursuers.obstacle_side_softness = cfg.train.teacher_obstacle_softness
+    teacher = TeamPolicy(pursuers, make_suite_evader(kind, 5))
     for step in range(cfg.spec.timing.episode_steps):
         a = teacher.act(obs, env)
         lab = full_speed_labels(a[:, :nt].copy())

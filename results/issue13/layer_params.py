@@ -40,6 +40,9 @@ VARIANTS = {  # name: AvoidanceSpec overrides (None: no layer)
     "teammate barrier off": {},  # with DIAGNOSTICS' tables
     "teammate braking 2.25": {"teammate_braking": 2.25},
     "teammate braking 3.0": {"teammate_braking": 3.0},
+    "teammate braking 4.5": {"teammate_braking": 4.5},
+    "braking 2.0 + mates 3.0": {"braking": 2.0, "teammate_braking": 3.0},
+    "braking 2.0 + mates 4.0": {"braking": 2.0, "teammate_braking": 4.0},
 }
 DIAGNOSTICS = {"teammate barrier off": without_teammates}  # which part of the layer costs
 ONLY = sys.argv[3].split(",") if len(sys.argv) > 3 else list(VARIANTS)  # a subset, by name
