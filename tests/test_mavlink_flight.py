@@ -10,6 +10,7 @@ the silent vehicles' acknowledgements (its flight-log rows keep their rate throu
 """
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -41,6 +42,9 @@ def flight():
                                      seed=i).start()
     links = {}
     out: dict = {"vehicles": vehicles}
+    warnings = _Collect()  # the vehicles' and the links' warnings, for the assertions' messages
+    logging.getLogger().addHandler(warnings)
+    out["log"] = warnings.lines
     try:
         for i, d in enumerate(DRONES):
             links[d] = open_link(f"mavlink:udpin:127.0.0.1:{port + i}", connect_timeout=5.0)
@@ -50,6 +54,10 @@ def flight():
         with session:
             out["preflight"] = session.preflight(timeout=10.0)  # disarmed on the ground is ready for MAVLink
             out["flying"] = session.takeoff()
+            # why a drone is not flying, for the assertion's message: its events and its link's refused commands
+            out["takeoff_log"] = {d: ([f"{e.kind}: {e.detail}" for e in session.events if e.drone == d],
+                                      list(links[d].command_errors), session.status(d).value)
+                                  for d in DRONES if d not in out["flying"]}
             # PX4 flies the stream only in OFFBOARD, which the link asks for once the stream runs
             out["offboard"] = wait_until(lambda: all(vehicles[d].flight_mode == "OFFBOARD" for d in DRONES
                                                      if DRONES[d] is Autopilot.PX4), 20.0)
@@ -78,10 +86,22 @@ def flight():
         out["t_cut"] = t_cut
         out["errors"] = {d: links[d].command_errors for d in DRONES}
     finally:
+        logging.getLogger().removeHandler(warnings)
         close_links(links.values())
         for v in vehicles.values():
             v.stop()
     return out
+
+
+class _Collect(logging.Handler):
+    """Keeps every WARNING and above as one line: a module fixture's log is not in the report of a later test."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(f"{record.relativeCreated / 1e3:.3f} s {record.name}: {record.getMessage()}")
 
 
 def test_disarmed_vehicles_pass_preflight(flight):
@@ -89,7 +109,7 @@ def test_disarmed_vehicles_pass_preflight(flight):
 
 
 def test_every_vehicle_took_off_and_px4_went_offboard(flight):
-    assert sorted(flight["flying"]) == sorted(DRONES)
+    assert sorted(flight["flying"]) == sorted(DRONES), (flight["takeoff_log"], flight["log"])
     assert flight["offboard"]
     modes = flight["modes_in_flight"]
     assert all(modes[d] == ("GUIDED" if a is Autopilot.ARDUPILOT else "OFFBOARD") for d, a in DRONES.items())
