@@ -254,6 +254,13 @@ class TrainConfig:
     """Count the arena's walls with the obstacles for ``imitation_obstacle_weight``: a row whose agent's body is
     within ``imitation_obstacle_radius`` of a wall weighs it too (the perimeter runner keeps its pursuers there,
     where the teacher's wall damping and the avoidance layer's wall barrier meet)."""
+    imitation_augment: float = 0.0
+    """Share of every behaviour-cloning batch (DAgger's and the polish's) drawn from augmented rows instead of the
+    replay buffer: at every DAgger step, that step's states with every evader's velocity redrawn (a uniform heading,
+    a speed uniform up to the evader's top speed), observed and labelled by the teacher anew (``CloneBuffer``). The
+    DAgger rows hold the velocities the training evaders fly next to the team, mostly straight away from it; the
+    teacher's lead follows a target's velocity wherever it points, and the augmented rows show the clone that
+    (results/README.md, twenty-third attempt). 0: none."""
     imitation_polish_steps: int = 0
     """When the imitation (DAgger) phase ends: this many more behaviour-cloning steps of the team's actors
     (pursuers and scouts), each on its own replay sample of ``imitation_batch`` transitions, with no env steps,
@@ -413,6 +420,12 @@ class TrainConfig:
         if self.imitation_polish_steps and not (self.imitation_steps and self.teacher != "none"):
             raise SpecError("train.imitation_polish_steps: polishes the clone of a DAgger phase, and this config has "
                             "none: set train.teacher and train.imitation_steps, or imitation_polish_steps = 0")
+        if not (math.isfinite(self.imitation_augment) and 0.0 <= self.imitation_augment < 1.0):
+            raise SpecError(f"train.imitation_augment: must be a share in [0, 1) of each cloning batch (0: none), got "
+                            f"{self.imitation_augment!r}")
+        if self.imitation_augment and not (self.imitation_steps and self.teacher != "none"):
+            raise SpecError("train.imitation_augment: augments the rows of a DAgger phase, and this config has none: "
+                            "set train.teacher and train.imitation_steps, or imitation_augment = 0")
         if self.imitation_batch < 1:
             raise SpecError(f"train.imitation_batch: must be >= 1, got {self.imitation_batch!r}")
         if self.imitation_updates and self.imitation_batch > self.buffer_size:

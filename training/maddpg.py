@@ -127,6 +127,55 @@ class ReplayBuffer:
             self.add(sd["obs"], sd["act"], sd["rew"], sd["next_obs"], sd.get("next_act"), sd.get("teach"))
 
 
+class CloneBuffer:
+    """Preallocated ring buffer of behaviour-cloning rows only: observations ``[N, D]`` and the teacher's actions
+    ``[N, 2]`` at them, float32 on ``device`` (``train.imitation_augment``'s rows, which no env step follows)."""
+
+    FIELDS = ("obs", "teach")
+
+    def __init__(self, capacity: int, n_agents: int, obs_dim: int, act_dim: int = 2,
+                 device: str | torch.device = "cpu") -> None:
+        self.capacity = capacity
+        self.device = torch.device(device)
+        self.obs = torch.zeros(capacity, n_agents, obs_dim, dtype=torch.float32, device=self.device)
+        self.teach = torch.zeros(capacity, n_agents, act_dim, dtype=torch.float32, device=self.device)
+        self.ptr = 0
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs: Any, teach: Any) -> None:
+        """Append ``B`` rows (numpy or torch), wrapping around when full."""
+        tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in (obs, teach)]
+        b = tensors[0].shape[0]
+        if b > self.capacity:
+            tensors = [t[-self.capacity:] for t in tensors]
+            b = self.capacity
+        idx = (self.ptr + torch.arange(b, device=self.device)) % self.capacity
+        for name, t in zip(self.FIELDS, tensors):
+            getattr(self, name)[idx] = t
+        self.ptr = (self.ptr + b) % self.capacity
+        self.size = min(self.size + b, self.capacity)
+
+    def sample_fields(self, batch: int, generator: torch.Generator, fields: Sequence[str] = FIELDS
+                      ) -> list[torch.Tensor]:
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty clone buffer")
+        idx = torch.randint(0, self.size, (batch,), generator=generator, device=self.device)
+        return [getattr(self, name)[idx] for name in fields]
+
+    def state_dict(self) -> dict[str, Any]:
+        order = (torch.arange(self.size, device=self.device) + (self.ptr - self.size)) % self.capacity
+        return {name: getattr(self, name)[order].cpu() for name in self.FIELDS}
+
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        self.ptr = 0
+        self.size = 0
+        if sd["obs"].shape[0]:
+            self.add(sd["obs"], sd["teach"])
+
+
 def clip_grad_norm_per_agent(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
     """Scale the gradients of stacked parameters (leading dim = agent) so that each agent's global norm is at
     most ``max_norm``; returns the per-agent norms before clipping ``[N]``."""

@@ -33,11 +33,12 @@ import torch
 
 from runtime.avoidance import avoid_agents
 from runtime.cliutil import write_text_atomic
+from runtime.observation import encode_observations
 from runtime.spec import Role
 from training.checkpoint import save_actors
 from training.config import ExperimentConfig
 from training.env import PursuitEnv
-from training.maddpg import ReplayBuffer
+from training.maddpg import CloneBuffer, ReplayBuffer
 from training.opponents import OpponentMixer
 from training.rolecritic import make_learner
 
@@ -162,6 +163,14 @@ class _Window:
 # ---------------------------------------------------------------------------------------------- loop
 
 
+@dataclass(frozen=True)
+class _EnvView:
+    """What a scripted policy reads of an env (``spec``, ``state``), for states the env is not in."""
+
+    spec: Any
+    state: Any
+
+
 class Trainer:
     """Owns the env, the learner, the buffer and the run folder of one training run."""
 
@@ -193,6 +202,13 @@ class Trainer:
         self._learns = self.agent.learn_mask.cpu().numpy() > 0  # [N] agents whose actors train
         self.buffer = ReplayBuffer(tc.buffer_size, cfg.spec.n_agents, cfg.spec.max_obs_dim, 2, tc.device)
         self.sample_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 1)
+        # train.imitation_augment: its rows, their draws and their own sample stream (a run without it draws as before)
+        self.clone_buffer = None
+        if tc.imitation_augment:
+            self.clone_buffer = CloneBuffer(min(tc.buffer_size, tc.imitation_steps * tc.n_envs), cfg.spec.n_agents,
+                                            cfg.spec.max_obs_dim, 2, tc.device)
+        self.augment_rng = np.random.default_rng(tc.seed + 7)
+        self.augment_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 8)
         self.noise_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 2)
         self.env_step = 0
         self.polished = 0  # cloning steps done of train.imitation_polish_steps
@@ -248,6 +264,12 @@ class Trainer:
         self.polished = int(st.get("polished", 0))  # absent in checkpoints written before the polish
         if "polish_gen" in st:
             self.polish_gen.set_state(st["polish_gen"].cpu() if self.tc.device == "cpu" else st["polish_gen"])
+        if "augment_rng" in st:
+            self.augment_rng.bit_generator.state = st["augment_rng"]
+            self.augment_gen.set_state(st["augment_gen"].cpu() if self.tc.device == "cpu" else st["augment_gen"])
+        cpath = ckpt_dir / "clone_buffer.pt"
+        if self.clone_buffer is not None and cpath.is_file():
+            self.clone_buffer.load_state_dict(torch.load(cpath, map_location=self.tc.device, weights_only=True))
         if "opponents" in st:
             self.mixer.load_state_dict(st["opponents"], self.agent.frozen_actors())
             self.mixer.rng.bit_generator.state = st["opponent_rng"]
@@ -297,9 +319,12 @@ class Trainer:
               "np_rng": self.np_rng.bit_generator.state, "world_rng": self.env.world.rng.bit_generator.state,
               "config": self.cfg.to_dict(), "opponents": self.mixer.state_dict(),
               "opponent_rng": self.mixer.rng.bit_generator.state, "teacher_rng": self.teacher_rng.bit_generator.state,
-              "polished": self.polished, "polish_gen": self.polish_gen.get_state()}
+              "polished": self.polished, "polish_gen": self.polish_gen.get_state(),
+              "augment_rng": self.augment_rng.bit_generator.state, "augment_gen": self.augment_gen.get_state()}
         if self.tc.checkpoint_buffer:
             _save_torch(self.buffer.state_dict(), self.ckpt_dir / "buffer.pt")
+            if self.clone_buffer is not None:
+                _save_torch(self.clone_buffer.state_dict(), self.ckpt_dir / "clone_buffer.pt")
         _save_torch(st, self.ckpt_dir / "state.pt")
         meta = {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
                 "run": str(self.out)}
@@ -348,6 +373,8 @@ class Trainer:
         if self.teacher is not None and (self.imitating() or tc.imitation_weight > 0):  # else nobody reads it
             teach = full_speed_labels(np.asarray(self.teacher.act(obs, self.env), dtype=np.float64))
         if self.imitating():  # DAgger: the teacher flies a share beta of the envs, the learners the rest
+            if self.clone_buffer is not None:
+                self._augment()
             a = self.agent.act(obs, self.noise_std(), self.noise_gen).cpu().numpy().astype(np.float64)
             by_teacher = self.teacher_rng.random(tc.n_envs) < self.teacher_share()
             rows = by_teacher[:, None] & learns[None, :]
@@ -361,6 +388,38 @@ class Trainer:
         if self.mixer.active:
             given |= self.mixer.apply(obs, a, self.env, self.agent.device)
         return a, given, teach
+
+    def _augment(self) -> None:
+        """``train.imitation_augment``: this step's states with every evader's velocity redrawn (uniform heading,
+        speed uniform up to the evader's top speed), observed as the env would and labelled by the teacher, into
+        the clone buffer. The env itself is not touched."""
+        spec, s, env = self.spec, self.env.state, self.env
+        nt = spec.team.n_team
+        b, e = s.pos.shape[0], spec.team.n_evaders
+        heading = self.augment_rng.uniform(0.0, 2.0 * np.pi, (b, e))
+        speed = self.augment_rng.uniform(0.0, 1.0, (b, e)) * spec.evader.max_speed
+        vel = s.vel.copy()
+        vel[:, nt:] = np.stack([np.cos(heading), np.sin(heading)], -1) * speed[..., None]
+        # every sighting made this period (own or relayed) holds the evader's velocity now: the redrawn one
+        t = env.time_s()
+        know = env.knowledge.copy()
+        fresh = know[..., 4] == t[:, None, None]  # [B, n_team, E]
+        know[..., 2:4] = np.where(fresh[..., None], vel[:, None, nt:], know[..., 2:4])
+        obs = encode_observations(spec, s.pos, vel, s.obstacle_pos, s.obstacle_radius, know, t)
+        view = _EnvView(spec, dataclasses.replace(s, vel=vel))
+        self.clone_buffer.add(obs, full_speed_labels(np.asarray(self.teacher.act(obs, view), dtype=np.float64)))
+
+    def _clone_sample(self, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """One cloning batch of ``train.imitation_batch`` rows (observations, teacher's actions): from the replay
+        buffer (with ``gen``), and a share ``train.imitation_augment`` of it from the clone buffer."""
+        tc = self.tc
+        k = round(tc.imitation_augment * tc.imitation_batch) if self.clone_buffer is not None \
+            and len(self.clone_buffer) else 0
+        o, t = self.buffer.sample_fields(tc.imitation_batch - k, gen, ("obs", "teach"))
+        if not k:
+            return o, t
+        ao, at = self.clone_buffer.sample_fields(k, self.augment_gen)
+        return torch.cat([o, ao]), torch.cat([t, at])
 
     def _executed(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
         """What the world flies: ``actions`` through the spec's avoidance layer (``runtime.avoidance``) for every
@@ -438,7 +497,7 @@ class Trainer:
                         win.n_updates += 1
                     if imitation and tc.imitation_updates and len(self.buffer) >= tc.imitation_batch:
                         for _ in range(tc.imitation_updates):
-                            o, t = self.buffer.sample_fields(tc.imitation_batch, self.sample_gen, ("obs", "teach"))
+                            o, t = self._clone_sample(self.sample_gen)
                             win.clone_mse += self.agent.clone_step(o, t)
                             win.n_clone += 1
                 if tc.imitation_polish_steps and self.env_step == tc.imitation_steps < tc.steps:
@@ -521,12 +580,13 @@ class Trainer:
         try:
             with self.agent.kept_rows(range(nt, self.spec.n_agents)):
                 while self.polished < tc.imitation_polish_steps:
-                    g0 = self.polish_gen.get_state()
+                    g0, a0 = self.polish_gen.get_state(), self.augment_gen.get_state()
                     try:
-                        o, t = self.buffer.sample_fields(tc.imitation_batch, self.polish_gen, ("obs", "teach"))
+                        o, t = self._clone_sample(self.polish_gen)
                         mse += self.agent.clone_step(o, t, team)
                     except KeyboardInterrupt:  # this step is not counted: --resume draws its sample again
                         self.polish_gen.set_state(g0)
+                        self.augment_gen.set_state(a0)
                         raise
                     n += 1
                     self.polished += 1
