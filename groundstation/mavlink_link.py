@@ -99,6 +99,7 @@ class MavlinkLink(MavlinkOperations):
         self._params: dict[str, _Pending] = {}
         self._upload: dict[str, Any] | None = None
         self._armed = False
+        self._takeoff_under_way = False  # a takeoff the vehicle accepted, not yet ended (mavlink_ops.takeoff)
         self._terminated = False
         self._estopped = False  # latched by emergency_stop() until a reboot: ArduPilot's termination only disarms
         self._custom_mode = 0
@@ -223,7 +224,10 @@ class MavlinkLink(MavlinkOperations):
                         msg.autopilot, msg.type)
         if src != self.target_system:
             return
-        self._armed = bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+        armed = bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+        if self._armed and not armed:
+            self._takeoff_under_way = False  # disarmed: whatever flight was under way is over
+        self._armed = armed
         self._terminated = msg.system_status in (mav.MAV_STATE_FLIGHT_TERMINATION, mav.MAV_STATE_EMERGENCY)
         self._custom_mode = msg.custom_mode
         if self.mode in LANDING_MODES:

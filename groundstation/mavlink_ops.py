@@ -173,8 +173,19 @@ class MavlinkOperations(Link):
         """Queue the takeoff to ``height`` [m, world z] and return its future at once: ArduPilot GUIDED, arm,
         climb speed, ``NAV_TAKEOFF`` (param7 above home); PX4 arm, ``NAV_TAKEOFF`` (param7 AMSL from the EKF
         origin), then OFFBOARD once setpoints stream. ``LinkError`` now only for a closed or locked link; a
-        refused step fails the future (and is logged, and kept in ``command_errors``)."""
+        refused step fails the future (and is logged, and kept in ``command_errors``).
+
+        Once the vehicle has accepted a takeoff, asking again (the flight supervisor re-sends a takeoff whose
+        vehicle still reports itself on the ground, for a command that a radio link lost) returns a finished
+        future and sends nothing, until the flight ends (a landing, an emergency stop, or a disarm). Both
+        firmwares refuse a second ``NAV_TAKEOFF`` while climbing, and their landed state lags the ack by a
+        telemetry period or more."""
         self._check_flyable()
+        if self._takeoff_under_way:
+            logger.debug("%s: takeoff already accepted and under way: not sent again", self.uri)
+            done: concurrent.futures.Future = concurrent.futures.Future()
+            done.set_result(None)
+            return done
         self._worker.preempt(("land",))
         return self._worker.submit("takeoff", lambda: self._takeoff(height, duration))
 
@@ -189,6 +200,7 @@ class MavlinkOperations(Link):
             self._want_offboard = True
             self._command_ok(mav.MAV_CMD_NAV_TAKEOFF, "takeoff", 0, 0, 0, math.nan, math.nan, math.nan,
                              self.origin.alt + height)
+            self._takeoff_under_way = True
             return
         if self.mode != "GUIDED":
             self.set_mode("GUIDED")
@@ -202,6 +214,7 @@ class MavlinkOperations(Link):
                 logger.info("%s: climb speed not taken (%s); the firmware's takeoff speed applies", self.uri,
                             mav_name(mav, "MAV_RESULT_", result))
         self._command_ok(mav.MAV_CMD_NAV_TAKEOFF, "takeoff", 0, 0, 0, math.nan, math.nan, math.nan, height)
+        self._takeoff_under_way = True
 
     def land(self, duration: float, height: float = 0.0) -> concurrent.futures.Future:
         """Queue ``MAV_CMD_NAV_LAND`` (both firmwares switch to their LAND mode, descend at their landing speed
@@ -209,6 +222,7 @@ class MavlinkOperations(Link):
         A queued or hanging takeoff is abandoned first. Repeated calls while one is in flight share it."""
         self._check_open()
         self._want_offboard = False
+        self._takeoff_under_way = False
         self._worker.preempt(("takeoff", "offboard"))
         return self._worker.submit("land", lambda: self._command_ok(
             self._mav.MAV_CMD_NAV_LAND, "landing", 0, 0, 0, math.nan, math.nan, math.nan, 0.0))
@@ -227,6 +241,7 @@ class MavlinkOperations(Link):
         it). PX4 locks until rebooted; ArduCopter disarms, and this link keeps it locked until a reboot."""
         self._check_open()
         self._estopped = True
+        self._takeoff_under_way = False
         self._want_offboard = False
         for attempt in range(3):
             self._send("command_long_send", self.target_system, self.target_component,
