@@ -7,8 +7,16 @@ classical team itself (the bar). Min distance [m] / tracking per kind (evaluatio
 VARIANT: ``lead:L`` (lead_time_max L s on the instantaneous velocity), ``ema:TAU[:L]`` (lead on the target's velocity
 smoothed with time constant TAU s; the teacher keeps that memory), ``flee:L`` (lead along the inverse-square flee
 direction from the team, at the evader's top speed), ``scale:K:L`` (lead min(K distance / own speed, L)),
-``mix:W:L`` (W of the flee lead, 1-W of the velocity lead).
+``mix:W:L`` (W of the flee lead, 1-W of the velocity lead), ``duo:L1:L2`` (among the pursuers sharing a target, the
+nearest leads L1 s, the others L2 s), ``wall:LO:LW:D`` (lead LO s in the open, LW s at a wall, linear over the
+target's first D m from the nearest wall).
+
+Each VARIANT may end in ``@PUSH`` (the teacher's teammate push; 1, the shipped teacher's, by default) and
+``@PUSH@MATES`` (the avoidance layer's ``teammate_braking`` [m/s^2] as well), e.g. ``lead:0.45@3@4.5``; ``base`` is
+the classical lead law (``base@1@3``: the shipped teacher in a layer with teammate braking 3); ``MATES`` = ``none``
+flies the variant without the layer (the classical team's way, contacts and all).
 """
+import dataclasses
 import sys
 
 import numpy as np
@@ -48,14 +56,11 @@ class VariantPursuers(ClassicalPursuers):
         k = 1.0
         if self.kind == "lead":
             tv, lmax = ev[bi, target], self.args[0]
-        elif self.kind in ("duo", "duor"):
+        elif self.kind == "duo":
             # the pursuer nearest its target (among those sharing it) leads by args[0] s, the others by args[1] s
-            # ("duor": the other way round)
             same = target[:, :, None] == target[:, None, :]
             closer = same & (dist[:, None, :, 0] < dist[:, :, None, 0])
             first = closer.sum(-1, keepdims=True) == 0
-            if self.kind == "duor":
-                first = ~first
             tv = ev[bi, target]
             lmax = np.where(first, self.args[0], self.args[1])
         elif self.kind == "wall":
@@ -82,6 +87,16 @@ class VariantPursuers(ClassicalPursuers):
         return _unit(goal - pp)
 
 
+class Unlayered:
+    """A pursuer policy flown without the avoidance layer (``LayeredClassical``'s ``c`` alone)."""
+
+    def __init__(self, c):
+        self.c = c
+
+    def act(self, obs, env):
+        return self.c.act(obs, env)
+
+
 if len(sys.argv) < 4:
     sys.exit(__doc__)
 cfg = ExperimentConfig.from_toml(sys.argv[1])
@@ -89,11 +104,21 @@ eps = int(sys.argv[2])
 print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, eps)
 print_suite_line(cfg, "teacher (push 1, lead 0.6 s)", lambda: LayeredClassical(cfg.spec, 1.0), eps)
 for arg in sys.argv[3:]:
-    kind, *rest = arg.split(":")
-    def make(kind=kind, rest=[float(x) for x in rest]):
-        t = LayeredClassical(cfg.spec, 1.0)
-        c = VariantPursuers(kind, rest)
-        c.separation_gain = 1.0
+    law, *opts = arg.split("@")
+    push = float(opts[0]) if opts else 1.0
+    mates = opts[1] if len(opts) > 1 else None
+    kind, *rest = law.split(":")
+    run_cfg = cfg
+    if mates not in (None, "none"):
+        run_cfg = dataclasses.replace(cfg, spec=dataclasses.replace(
+            cfg.spec, avoidance=dataclasses.replace(cfg.spec.avoidance, teammate_braking=float(mates))))
+
+    def make(kind=kind, rest=[float(x) for x in rest], push=push, spec=run_cfg.spec, layered=mates != "none"):
+        c = ClassicalPursuers() if kind == "base" else VariantPursuers(kind, rest)
+        c.separation_gain = push
+        if not layered:
+            return Unlayered(c)
+        t = LayeredClassical(spec, push)
         t.c = c
         return t
-    print_suite_line(cfg, f"teacher {arg}", make, eps)
+    print_suite_line(run_cfg, f"teacher {arg}", make, eps)
