@@ -99,7 +99,7 @@ def test_clone_buffer_wraps_and_round_trips():
     other.load_state_dict(sd)
     assert torch.equal(other.state_dict()["teach"], sd["teach"])
     with pytest.raises(ValueError, match="empty clone buffer"):
-        CloneBuffer(4, 2, 3).sample_fields(2, torch.Generator())
+        CloneBuffer(4, 2, 3).sample_fields(2, torch.Generator(), ("obs", "teach"))
 
 
 def test_a_run_with_augmented_rows_interrupted_in_its_polish_resumes_exactly(tmp_path, monkeypatch):

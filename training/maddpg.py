@@ -53,12 +53,54 @@ class Batch(NamedTuple):
     teach: torch.Tensor | None = None  # [K, N, 2]: the teacher's action at obs (train.teacher), NaN: none
 
 
-class ReplayBuffer:
+class _Ring:
+    """A preallocated ring of tensors, one per name in ``FIELDS`` (first dimension: the slot), on ``device``."""
+
+    FIELDS: tuple[str, ...] = ()
+    capacity: int
+    device: torch.device
+    ptr: int = 0
+    size: int = 0
+    what = "ring"
+
+    def __len__(self) -> int:
+        return self.size
+
+    def _write(self, values: Sequence[Any]) -> None:
+        """Append a batch of ``B`` rows, one value per field (numpy or torch), wrapping around when full."""
+        tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in values]
+        b = tensors[0].shape[0]
+        if b > self.capacity:  # only the newest fit
+            tensors = [t[-self.capacity:] for t in tensors]
+            b = self.capacity
+        idx = (self.ptr + torch.arange(b, device=self.device)) % self.capacity
+        for name, t in zip(self.FIELDS, tensors):
+            getattr(self, name)[idx] = t
+        self.ptr = (self.ptr + b) % self.capacity
+        self.size = min(self.size + b, self.capacity)
+
+    def sample_fields(self, batch: int, generator: torch.Generator, fields: Sequence[str]) -> list[torch.Tensor]:
+        """``batch`` random rows' ``fields`` only (a cloning step needs the observations and the teacher's
+        actions, not the rest: the gather from a large buffer is most of a big sample's cost)."""
+        if self.size == 0:
+            raise ValueError(f"cannot sample from an empty {self.what}")
+        idx = torch.randint(0, self.size, (batch,), generator=generator, device=self.device)
+        return [getattr(self, name)[idx] for name in fields]
+
+    def state_dict(self) -> dict[str, Any]:
+        n = self.size
+        # keep the order of insertion so that a reload with a different capacity keeps the newest
+        order = (torch.arange(n, device=self.device) + (self.ptr - n)) % self.capacity
+        return {name: getattr(self, name)[order].cpu() for name in self.FIELDS}
+
+
+class ReplayBuffer(_Ring):
     """Preallocated ring buffer of joint transitions (obs ``[N, D]``, actions ``[N, 2]``, rewards ``[N]``,
     next obs ``[N, D]``, next actions ``[N, 2]``, the teacher's actions at obs ``[N, 2]``, NaN without one),
     float32 on ``device``."""
 
     FIELDS = ("obs", "act", "rew", "next_obs", "next_act", "teach")
+    what = "replay buffer"
 
     def __init__(self, capacity: int, n_agents: int, obs_dim: int, act_dim: int = 2,
                  device: str | torch.device = "cpu") -> None:
@@ -74,9 +116,6 @@ class ReplayBuffer:
         self.ptr = 0
         self.size = 0
 
-    def __len__(self) -> int:
-        return self.size
-
     def add(self, obs: Any, act: Any, rew: Any, next_obs: Any, next_act: Any = None, teach: Any = None) -> None:
         """Append a batch of ``B`` transitions (numpy or torch), wrapping around when full. ``next_act``
         ``[B, N, 2]``: the actions taken at ``next_obs`` (needed for scripted agents, whose next action no
@@ -87,34 +126,10 @@ class ReplayBuffer:
             next_act = torch.full_like(torch.as_tensor(act, dtype=torch.float32), float("nan"))
         if teach is None:
             teach = torch.full_like(torch.as_tensor(act, dtype=torch.float32), float("nan"))
-        values = (obs, act, rew, next_obs, next_act, teach)
-        tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in values]
-        b = tensors[0].shape[0]
-        if b > self.capacity:  # only the newest fit
-            tensors = [t[-self.capacity:] for t in tensors]
-            b = self.capacity
-        idx = (self.ptr + torch.arange(b, device=self.device)) % self.capacity
-        for name, t in zip(self.FIELDS, tensors):
-            getattr(self, name)[idx] = t
-        self.ptr = (self.ptr + b) % self.capacity
-        self.size = min(self.size + b, self.capacity)
+        self._write((obs, act, rew, next_obs, next_act, teach))
 
     def sample(self, batch: int, generator: torch.Generator) -> Batch:
         return Batch(*self.sample_fields(batch, generator, self.FIELDS))
-
-    def sample_fields(self, batch: int, generator: torch.Generator, fields: Sequence[str]) -> list[torch.Tensor]:
-        """``batch`` random transitions' ``fields`` only (a cloning step needs the observations and the teacher's
-        actions, not the rest: the gather from a large buffer is most of a big sample's cost)."""
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty replay buffer")
-        idx = torch.randint(0, self.size, (batch,), generator=generator, device=self.device)
-        return [getattr(self, name)[idx] for name in fields]
-
-    def state_dict(self) -> dict[str, Any]:
-        n = self.size
-        # keep the order of insertion so that a reload with a different capacity keeps the newest
-        order = (torch.arange(n, device=self.device) + (self.ptr - n)) % self.capacity
-        return {name: getattr(self, name)[order].cpu() for name in self.FIELDS}
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.ptr = 0
@@ -127,11 +142,12 @@ class ReplayBuffer:
             self.add(sd["obs"], sd["act"], sd["rew"], sd["next_obs"], sd.get("next_act"), sd.get("teach"))
 
 
-class CloneBuffer:
+class CloneBuffer(_Ring):
     """Preallocated ring buffer of behaviour-cloning rows only: observations ``[N, D]`` and the teacher's actions
     ``[N, 2]`` at them, float32 on ``device`` (``train.imitation_augment``'s rows, which no env step follows)."""
 
     FIELDS = ("obs", "teach")
+    what = "clone buffer"
 
     def __init__(self, capacity: int, n_agents: int, obs_dim: int, act_dim: int = 2,
                  device: str | torch.device = "cpu") -> None:
@@ -142,32 +158,9 @@ class CloneBuffer:
         self.ptr = 0
         self.size = 0
 
-    def __len__(self) -> int:
-        return self.size
-
     def add(self, obs: Any, teach: Any) -> None:
         """Append ``B`` rows (numpy or torch), wrapping around when full."""
-        tensors = [torch.as_tensor(x, dtype=torch.float32).to(self.device) for x in (obs, teach)]
-        b = tensors[0].shape[0]
-        if b > self.capacity:
-            tensors = [t[-self.capacity:] for t in tensors]
-            b = self.capacity
-        idx = (self.ptr + torch.arange(b, device=self.device)) % self.capacity
-        for name, t in zip(self.FIELDS, tensors):
-            getattr(self, name)[idx] = t
-        self.ptr = (self.ptr + b) % self.capacity
-        self.size = min(self.size + b, self.capacity)
-
-    def sample_fields(self, batch: int, generator: torch.Generator, fields: Sequence[str] = FIELDS
-                      ) -> list[torch.Tensor]:
-        if self.size == 0:
-            raise ValueError("cannot sample from an empty clone buffer")
-        idx = torch.randint(0, self.size, (batch,), generator=generator, device=self.device)
-        return [getattr(self, name)[idx] for name in fields]
-
-    def state_dict(self) -> dict[str, Any]:
-        order = (torch.arange(self.size, device=self.device) + (self.ptr - self.size)) % self.capacity
-        return {name: getattr(self, name)[order].cpu() for name in self.FIELDS}
+        self._write((obs, teach))
 
     def load_state_dict(self, sd: dict[str, Any]) -> None:
         self.ptr = 0

@@ -418,7 +418,7 @@ class Trainer:
         o, t = self.buffer.sample_fields(tc.imitation_batch - k, gen, ("obs", "teach"))
         if not k:
             return o, t
-        ao, at = self.clone_buffer.sample_fields(k, self.augment_gen)
+        ao, at = self.clone_buffer.sample_fields(k, self.augment_gen, ("obs", "teach"))
         return torch.cat([o, ao]), torch.cat([t, at])
 
     def _executed(self, obs: np.ndarray, actions: np.ndarray) -> np.ndarray:
