@@ -69,6 +69,12 @@ class Autopilot(str, enum.Enum):
         return {mav.MAV_AUTOPILOT_ARDUPILOTMEGA: cls.ARDUPILOT, mav.MAV_AUTOPILOT_PX4: cls.PX4}.get(autopilot)
 
 
+NOT_ARMABLE = {Autopilot.ARDUPILOT: ("LAND", "RTL", "AUTO"), Autopilot.PX4: ("LAND", "RTL")}
+"""Modes in which each firmware refuses to arm (ArduCopter's ``allows_arming`` false; PX4 commander's mode
+requirements, ``mode_req_prevent_arming``). A vehicle that landed itself stays in its landing mode: the link's
+takeoff switches a disarmed one out of it first, and the simulated vehicle refuses to arm in it."""
+
+
 def px4_custom_mode(main: int, sub: int = 0) -> int:
     """``union px4_custom_mode`` as the uint32 ``HEARTBEAT.custom_mode``."""
     return (main & 0xFF) << 16 | (sub & 0xFF) << 24

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterable
 
 from groundstation.link import Link, LinkError
-from groundstation.mavlink_autopilot import (COPTER_MODES, PX4_MODES, Autopilot, GlobalOrigin, fence_items,
-                                             fence_params, set_mode_params)
+from groundstation.mavlink_autopilot import (COPTER_MODES, NOT_ARMABLE, PX4_MODES, Autopilot, GlobalOrigin,
+                                             fence_items, fence_params, set_mode_params)
 from groundstation.mavlink_wire import FORCE_DISARM_MAGIC, mav_name
 from groundstation.mavlink_worker import CommandWorker
 
@@ -171,8 +171,8 @@ class MavlinkOperations(Link):
 
     def takeoff(self, height: float, duration: float) -> concurrent.futures.Future:
         """Queue the takeoff to ``height`` [m, world z] and return its future at once: ArduPilot GUIDED, arm,
-        climb speed, ``NAV_TAKEOFF`` (param7 above home); PX4 arm, ``NAV_TAKEOFF`` (param7 AMSL from the EKF
-        origin), then OFFBOARD once setpoints stream. ``LinkError`` now only for a closed or locked link; a
+        climb speed, ``NAV_TAKEOFF`` (param7 above home); PX4 (out of a mode it will not arm in, to HOLD,) arm,
+        ``NAV_TAKEOFF`` (param7 AMSL from the EKF origin), then OFFBOARD once setpoints stream. ``LinkError`` now only for a closed or locked link; a
         refused step fails the future (and is logged, and kept in ``command_errors``).
 
         Once the vehicle has accepted a takeoff, asking again (the flight supervisor re-sends a takeoff whose
@@ -196,6 +196,8 @@ class MavlinkOperations(Link):
                 raise LinkError(self.uri, "PX4 takeoff needs the EKF origin (GPS_GLOBAL_ORIGIN)",
                                 "set the vehicle's EKF origin before flying")
             if not self._armed:
+                if self.mode in NOT_ARMABLE[Autopilot.PX4]:  # landed itself: PX4 stays in LAND, and arms in HOLD
+                    self.set_mode("LOITER")
                 self._command_ok(mav.MAV_CMD_COMPONENT_ARM_DISARM, "arming", 1.0)
             self._want_offboard = True
             self._command_ok(mav.MAV_CMD_NAV_TAKEOFF, "takeoff", 0, 0, 0, math.nan, math.nan, math.nan,

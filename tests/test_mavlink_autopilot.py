@@ -241,7 +241,7 @@ def test_arming_is_refused_outside_the_vehicles_fence(pair):
 def test_a_takeoff_asked_again_while_under_way_is_not_sent_and_a_new_flight_takes_off_again(pair):
     """The flight supervisor re-sends a takeoff whose vehicle still reports itself on the ground (the landed state
     lags the ack); the firmware would refuse a second NAV_TAKEOFF while climbing, so the link sends none and
-    logs no refusal. After the landing and disarm, the next takeoff is sent and flown."""
+    logs no refusal. After the landing and disarm, the next takeoff is sent and flown, on both firmwares."""
     vehicle, link = pair
     link.takeoff(0.5, 1.0).result(timeout=5.0)
     again = link.takeoff(0.5, 1.0)
@@ -250,9 +250,9 @@ def test_a_takeoff_asked_again_while_under_way_is_not_sent_and_a_new_flight_take
     assert _wait(lambda: vehicle.position[2] > 0.3, 5.0)  # the first takeoff flies on
     link.land(1.0).result(timeout=5.0)
     assert _wait(lambda: not vehicle.armed, 8.0) and _wait(lambda: not link.armed, 2.0)
-    if link.autopilot is Autopilot.PX4:
-        link.set_mode("LOITER")  # PX4 stays in LAND after landing, and does not arm there
-    link.takeoff(0.4, 1.0).result(timeout=5.0)  # a new flight: sent, accepted
+    # a new flight: sent, accepted (a PX4 vehicle stays in LAND after landing, and does not arm there: the link
+    # switches it to HOLD first)
+    link.takeoff(0.4, 1.0).result(timeout=5.0)
     assert _wait(lambda: vehicle.armed and vehicle.position[2] > 0.2, 5.0)
     assert link.command_errors == []
     link.land(1.0).result(timeout=5.0)

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from groundstation.mavlink_autopilot import mode_from_set_mode
+from groundstation.mavlink_autopilot import NOT_ARMABLE, mode_from_set_mode
 from groundstation.mavlink_wire import FORCE_DISARM_MAGIC, TYPE_MASK_IGNORE_POSITION, TYPE_MASK_IGNORE_VELOCITY, \
     ned_to_enu
 
@@ -47,8 +47,6 @@ class VehicleMode(enum.Enum):
 
 AIRBORNE = (VehicleMode.TAKEOFF, VehicleMode.HOLD, VehicleMode.VELOCITY, VehicleMode.RTL)
 
-NOT_ARMABLE = {"ardupilot": ("LAND", "RTL", "AUTO"), "px4": ("LAND", "RTL")}
-"""Modes in which arming is refused (ArduCopter ``allows_arming`` false; PX4 commander's mode requirements)."""
 
 
 class AutopilotCommands:
@@ -112,7 +110,7 @@ class AutopilotCommands:
     def _arm_problem(self) -> str | None:
         if self.mode is VehicleMode.TERMINATED:
             return "flight terminated: reboot first"
-        if self.flight_mode in NOT_ARMABLE[self.autopilot.value]:
+        if self.flight_mode in NOT_ARMABLE[self.autopilot]:
             return f"mode {self.flight_mode} not armable"
         if self.px4 and self.flight_mode == "OFFBOARD" and not self._offboard_signal():
             return "no offboard signal"
