@@ -30,6 +30,7 @@ _DOCS = {
     "OBS_MARGIN": "[m] gap to an obstacle's or a wall's surface where the approach speed reaches zero",
     "MATE_MARGIN": "[m] gap between two teammates' bodies where the approach speed reaches zero",
     "MATE_BRAKING": "[m/s^2] relative deceleration the teammate barrier plans with (each teammate takes half)",
+    "MATE_CREDIT": "share of a teammate's own speed away added to the approach budget toward it",
     "SELF_POS": "observation index of the own x (y follows)",
     "SELF_VEL": "observation index of the own vx (vy follows)",
     "OBSTACLES": "observation index of the first obstacle slot (dx, dy, radius; radius 0: empty)",

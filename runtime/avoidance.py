@@ -13,8 +13,11 @@ velocity nearest to it (Euclidean) among those that are
   and never covers the remaining gap within one control period. Toward a teammate each of the two keeps its own
   approach speed within ``sqrt(2 b g) / 2``, which shrinks as the pair closes in at up to twice that: following
   it asks of each a deceleration of ``b / 2``, so ``mate_braking`` (``spec.avoidance.teammate_braking``, default
-  ``braking``) at ``2 x braking`` asks of each teammate what an obstacle asks. Each is a half-plane
-  ``c . n >= -limit``;
+  ``braking``) at ``2 x braking`` asks of each teammate what an obstacle asks. With ``teammate_credit`` k, a
+  teammate's own speed away from the drone (``u > 0``, from its velocity in the observation) adds ``k u`` to that
+  half: the pair's closing speed at those velocities stays within ``limit`` for ``k <= 1`` (the drone's approach
+  less the teammate's retreat is at most its half; a teammate that approaches earns no credit), and a follower in
+  a chase line is not braked by a leader flying away. Each is a half-plane ``c . n >= -limit``;
 - within the role's ``max_speed`` (a disc around zero);
 - reachable in one control period: within ``max_accel x control_period`` of the drone's own velocity (a disc),
   because the drone tracks its command with a norm-limited acceleration (``runtime.world``): a command it can
@@ -44,9 +47,9 @@ from numba import njit
 
 from runtime.spec import Role, SwarmSpec
 
-# params: float64 [10]
+# params: float64 [11]
 (P_OWN_RADIUS, P_MATE_RADIUS, P_MAX_SPEED, P_MAX_ACCEL, P_HALF_WIDTH, P_DT, P_BRAKING, P_OBS_MARGIN,
- P_MATE_MARGIN, P_MATE_BRAKING) = range(10)
+ P_MATE_MARGIN, P_MATE_BRAKING, P_MATE_CREDIT) = range(11)
 # layout: int64 [6]
 L_SELF_POS, L_SELF_VEL, L_OBSTACLES, L_N_OBSTACLES, L_MATES, L_N_MATES = range(6)
 MATE_COLUMNS = 5
@@ -71,7 +74,7 @@ def role_tables(spec: SwarmSpec, role: Role) -> tuple[np.ndarray, np.ndarray]:
     rs = spec.role(role)
     params = np.array([rs.radius, mate_radius, rs.max_speed, rs.max_accel, spec.arena.half_width,
                        spec.timing.control_period, av.braking, av.obstacle_margin, av.teammate_margin,
-                       av.mate_braking],
+                       av.mate_braking, av.teammate_credit],
                       dtype=np.float64)
     ob, tm = lay["obstacles"], lay["teammates"]
     assert len(tm.columns) == MATE_COLUMNS and tm.columns[-1] == "valid", tm.columns
@@ -178,6 +181,7 @@ def avoid_rows(obs, act, params, layout):
     own_r, mate_r, vmax, amax = params[P_OWN_RADIUS], params[P_MATE_RADIUS], params[P_MAX_SPEED], params[P_MAX_ACCEL]
     hw, dt, braking = params[P_HALF_WIDTH], params[P_DT], params[P_BRAKING]
     m_obs, m_mate, mate_braking = params[P_OBS_MARGIN], params[P_MATE_MARGIN], params[P_MATE_BRAKING]
+    credit = params[P_MATE_CREDIT]
     sp, sv, ob0, n_ob = layout[L_SELF_POS], layout[L_SELF_VEL], layout[L_OBSTACLES], layout[L_N_OBSTACLES]
     tm0, n_tm = layout[L_MATES], layout[L_N_MATES]
     cap = n_tm + 4 + n_ob
@@ -205,6 +209,9 @@ def avoid_rows(obs, act, params, layout):
             if obs[b, o + 4] > 0.5 and d > 1e-9:
                 nx[m], ny[m] = -dx / d, -dy / d
                 lim[m] = 0.5 * _limit(d - own_r - mate_r, m_mate, mate_braking, dt)
+                away = -(np.float64(obs[b, o + 2]) * nx[m] + np.float64(obs[b, o + 3]) * ny[m])
+                if away > 0.0:  # teammate_credit: a share of the teammate's own speed away from this drone
+                    lim[m] += credit * away
                 m += 1
         for w in range(4):  # walls: +x, -x, +y, -y
             s = 1.0 if w % 2 == 0 else -1.0

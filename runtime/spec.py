@@ -254,6 +254,13 @@ class AvoidanceSpec:
     half), so each of two teammates closing in brakes at half of it. 0 (the default): ``braking``, the layer as it
     was before this field (each teammate braking at ``braking / 2``, twice as cautious as toward an obstacle);
     ``2 x braking`` asks of each teammate the deceleration an obstacle asks (configs/role_based.toml)."""
+    teammate_credit: float = field(default=0.0, metadata={"since": True})
+    """Share in [0, 1] of a teammate's own speed away from this drone (its velocity in the observation) that is
+    added to this drone's approach budget toward it: a pursuer that follows a teammate in a chase line is then not
+    braked by a leader flying away from it. The pair's closing speed at those velocities stays within the barrier's
+    limit, as without it (this drone's approach less the teammate's retreat is at most its half of the limit, and a
+    teammate that approaches earns it no credit). 0 (the default): the layer as it was before this field
+    (results/README.md, twenty-third attempt)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -262,6 +269,9 @@ class AvoidanceSpec:
         _nonnegative(self, "obstacle_margin")
         _nonnegative(self, "teammate_margin")
         _nonnegative(self, "teammate_braking")
+        if not (math.isfinite(self.teammate_credit) and 0.0 <= self.teammate_credit <= 1.0):
+            raise SpecError(f"avoidance.teammate_credit: must be a share in [0, 1] of the teammate's speed away (0: "
+                            f"none), got {self.teammate_credit!r}")
 
     @property
     def mate_braking(self) -> float:

@@ -137,11 +137,13 @@ def constraints(spec: SwarmSpec, role: Role, obs: np.ndarray) -> tuple[np.ndarra
     o = np.asarray(obs, dtype=np.float64)
     x, y = o[lay["self_pos"].slice]
     normals, limits, hard = [], [], []
-    for dx, dy, _, _, valid in o[lay["teammates"].slice].reshape(-1, 5):
+    for dx, dy, vx, vy, valid in o[lay["teammates"].slice].reshape(-1, 5):
         d = math.hypot(dx, dy)
         if valid > 0.5 and d > 1e-9:
             normals.append((-dx / d, -dy / d))
-            limits.append(0.5 * _limit(d - own - mate_r - av.teammate_margin, av.teammate_braking or b, dt))
+            away = (vx * dx + vy * dy) / d  # the teammate's own speed away from this drone
+            limits.append(0.5 * _limit(d - own - mate_r - av.teammate_margin, av.teammate_braking or b, dt)
+                          + av.teammate_credit * max(away, 0.0))
             hard.append(False)
     for n, gap in (((-1, 0), hw - own - x), ((1, 0), hw - own + x), ((0, -1), hw - own - y), ((0, 1), hw - own + y)):
         normals.append(n)
@@ -430,6 +432,32 @@ def test_a_teammate_takes_half_the_budget_and_an_obstacle_all_of_it():
     mate[t] = 0.1501
     mate[lay["self_vel"].slice] = (-1.0, 0.0)
     assert np.array_equal(_apply(ON, Role.PURSUER, mate[None], -a), -a)
+
+
+def test_teammate_credit_lets_a_follower_keep_up_with_a_leader_flying_away_and_keeps_the_pair_within_the_limit():
+    """``teammate_credit`` k: toward a teammate flying away at u the approach budget grows by k u, so a follower in
+    a chase line is braked less, and the pair's closing speed (approach less the leader's retreat) stays within the
+    half budget; a teammate that approaches earns no credit. Off (0), it serialises and hashes as before."""
+    credit = SwarmSpec.from_dict({"avoidance": {"enabled": True, "teammate_credit": 0.5}})
+    lay = ON.layout(Role.PURSUER)
+    gap = 0.3
+    half = 0.5 * _limit(gap - ON.avoidance.teammate_margin, ON.avoidance.braking, ON.timing.control_period)
+    t = lay["teammates"].start
+    a = np.array([[1.0, 0.0]])
+    for leader_v in (0.8, 0.4, -0.3):  # flying away (+x, the direction of the teammate), slower, toward
+        follower = _obs(ON, vel=(0.8, 0.0))
+        follower[t:t + 5] = (gap + 0.15, 0.0, leader_v, 0.0, 1.0)
+        plain = _apply(ON, Role.PURSUER, follower[None], a.copy())[0, 0] * ON.pursuer.max_speed
+        got = _apply(credit, Role.PURSUER, follower[None], a.copy())[0, 0] * ON.pursuer.max_speed
+        assert plain <= half + 1e-9  # the shipped layer: the leader's motion does not count
+        if leader_v > 0:
+            assert got > plain + 0.1 and got <= half + 0.5 * leader_v + 1e-9
+            assert got - leader_v <= half + 1e-9  # the pair closes within the half budget
+        else:
+            assert got == pytest.approx(plain, abs=1e-12)  # no credit from a teammate that approaches
+    assert "teammate_credit" not in ON.to_dict()["avoidance"]
+    assert credit.hash != ON.hash and credit.to_dict()["avoidance"]["teammate_credit"] == 0.5
+    assert SwarmSpec.from_dict(json.loads(json.dumps(credit.to_dict()))).hash == credit.hash
 
 
 @pytest.mark.parametrize("role", ROLES)

@@ -43,11 +43,11 @@ FIRMWARE_FLAGS = ("-Os", "-Wdouble-promotion", "-fno-math-errno")
 """What crazyflie-firmware's Makefile adds for app sources (-Os, -Wdouble-promotion under -Werror)."""
 N_CASES = 6000
 EVEN = SwarmSpec.from_dict({"avoidance": {"enabled": True, "braking": 2.0, "obstacle_margin": 0.06,
-                                          "teammate_margin": 0.12, "teammate_braking": 3.4},
+                                          "teammate_margin": 0.12, "teammate_braking": 3.4, "teammate_credit": 0.6},
                             "team": {"n_pursuers": 3, "n_scouts": 0, "n_evaders": 3},
                             "pursuer": {"radius": 0.06, "max_speed": 0.9, "max_accel": 2.5}})
-"""Other numbers than the default: another braking, margins, team and pursuer body, so that nothing in the C
-holds the defaults by accident."""
+"""Other numbers than the default: another braking, margins, teammate credit, team and pursuer body, so that nothing
+in the C holds the defaults by accident."""
 
 
 EPS32 = float(np.finfo(np.float32).eps)

@@ -64,6 +64,9 @@ def test_round_trip_through_dict():
     ({"avoidance": {"enabled": True, "teammate_braking": -1.0}}, "spec.avoidance.teammate_braking"),
     ({"avoidance": {"enabled": True, "braking": 3.0}}, "spec.avoidance.braking"),
     ({"avoidance": {"enabled": True, "teammate_braking": 6.0}}, "spec.avoidance.teammate_braking"),
+    ({"avoidance": {"enabled": True, "teammate_credit": -0.1}}, "spec.avoidance.teammate_credit"),
+    ({"avoidance": {"enabled": True, "teammate_credit": 1.5}}, "spec.avoidance.teammate_credit"),
+    ({"avoidance": {"enabled": True, "teammate_credit": math.nan}}, "spec.avoidance.teammate_credit"),
 ])
 def test_bad_values_name_the_field(data, field):
     with pytest.raises(SpecError) as info:

@@ -463,8 +463,8 @@ static int avoid_nearest(avoid_qp_t *q, int nd)
     return q->found;
 }
 
-/* The half-planes of runtime.avoidance.avoid_rows, in its order: valid teammates (half the budget each), walls
- * +x -x +y -y, used obstacle slots (radius > 0). */
+/* The half-planes of runtime.avoidance.avoid_rows, in its order: valid teammates (half the budget each, plus the
+ * teammate_credit share of the teammate's own speed away), walls +x -x +y -y, used obstacle slots (radius > 0). */
 static void avoid_constraints(const float obs[SWARM_POLICY_OBS_DIM], avoid_qp_t *q)
 {
     const float x = obs[SWARM_AVOID_SELF_POS], y = obs[SWARM_AVOID_SELF_POS + 1];
@@ -475,8 +475,10 @@ static void avoid_constraints(const float obs[SWARM_POLICY_OBS_DIM], avoid_qp_t 
         if (t[SWARM_AVOID_MATE_COLS - 1] > 0.5f && d > 1e-9f) {
             q->nx[m] = -t[0] / d;
             q->ny[m] = -t[1] / d;
+            const float away = -(t[2] * q->nx[m] + t[3] * q->ny[m]);  /* the teammate's own speed away */
             q->lim[m] = 0.5f * avoid_limit(d - SWARM_AVOID_OWN_RADIUS - SWARM_AVOID_MATE_RADIUS,
                                            SWARM_AVOID_MATE_MARGIN, SWARM_AVOID_MATE_BRAKING);
+            if (away > 0.0f) q->lim[m] += SWARM_AVOID_MATE_CREDIT * away;
             ++m;
         }
     }
