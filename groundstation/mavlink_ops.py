@@ -172,8 +172,9 @@ class MavlinkOperations(Link):
     def takeoff(self, height: float, duration: float) -> concurrent.futures.Future:
         """Queue the takeoff to ``height`` [m, world z] and return its future at once: ArduPilot GUIDED, arm,
         climb speed, ``NAV_TAKEOFF`` (param7 above home); PX4 (out of a mode it will not arm in, to HOLD,) arm,
-        ``NAV_TAKEOFF`` (param7 AMSL from the EKF origin), then OFFBOARD once setpoints stream. ``LinkError`` now only for a closed or locked link; a
-        refused step fails the future (and is logged, and kept in ``command_errors``).
+        ``NAV_TAKEOFF`` (param7 AMSL from the EKF origin), then OFFBOARD once setpoints stream. ``LinkError`` now
+        only for a closed or locked link; a refused step fails the future (and is logged, and kept in
+        ``command_errors``).
 
         Once the vehicle has accepted a takeoff, asking again (the flight supervisor re-sends a takeoff whose
         vehicle still reports itself on the ground, for a command that a radio link lost) returns a finished

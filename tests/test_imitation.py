@@ -335,26 +335,38 @@ def test_polish_clones_the_team_after_dagger_and_resumes_exactly(tmp_path, monke
         same = all(torch.equal(p, q) for p, q in zip(x.state_dict().values(), y.state_dict().values()))
         assert same == (i >= nt), i
     # interrupted after 12 polish steps, then resumed
-    calls = {"n": 0}
-    real = MADDPG.clone_step
-
-    def flaky(self, obs, teach, only=None):
-        if only is not None:
-            calls["n"] += 1
-            if calls["n"] == 13:
-                raise KeyboardInterrupt
-        return real(self, obs, teach, only)
-
     cut = _cfg(**base, imitation_polish_steps=30, checkpoint_buffer=True)
-    monkeypatch.setattr(MADDPG, "clone_step", flaky)
+    interrupt_polish_at(monkeypatch, 13)
     first = Trainer(cut, tmp_path / "cut")
     assert first.run(progress=False).interrupted
     assert first.polished == 12
-    monkeypatch.setattr(MADDPG, "clone_step", real)
+    monkeypatch.undo()
     again = Trainer(cut, tmp_path / "cut", resume=True)
     assert again.polished == 12
     again.run(progress=False)
     assert again.polished == 30
-    for x, y in zip(again.agent.to_actors(), a_full):
+    assert_same_actors(again.agent.to_actors(), a_full)
+
+
+def interrupt_polish_at(monkeypatch, step: int) -> None:
+    """Make the ``step``-th team-only cloning step (the polish's) raise KeyboardInterrupt, as Ctrl-C would; every
+    other cloning step runs as it is. ``monkeypatch.undo()`` puts ``MADDPG.clone_step`` back."""
+    calls = {"n": 0}
+    real = MADDPG.clone_step
+
+    def interrupted(self, obs, teach, only=None):
+        if only is not None:
+            calls["n"] += 1
+            if calls["n"] == step:
+                raise KeyboardInterrupt
+        return real(self, obs, teach, only)
+
+    monkeypatch.setattr(MADDPG, "clone_step", interrupted)
+
+
+def assert_same_actors(a, b) -> None:
+    """Two lists of actors hold the same weights, bit for bit."""
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
         for p, q in zip(x.state_dict().values(), y.state_dict().values()):
             assert torch.equal(p, q)

@@ -10,8 +10,10 @@ import torch
 
 from runtime.spec import Role, SpecError
 from training.config import ExperimentConfig
-from training.maddpg import MADDPG, CloneBuffer
+from training.maddpg import CloneBuffer
 from training.train import Trainer, _EnvView, full_speed_labels
+
+from test_imitation import assert_same_actors, interrupt_polish_at
 
 
 def _cfg(**train) -> ExperimentConfig:
@@ -75,9 +77,7 @@ def test_cloning_batches_mix_in_the_share_and_a_run_without_it_is_unchanged(tmp_
     plain.run(progress=False)
     again = Trainer(_cfg(imitation_augment=0.0), tmp_path / "again")
     again.run(progress=False)
-    for x, y in zip(plain.agent.to_actors(), again.agent.to_actors()):
-        for p, q in zip(x.state_dict().values(), y.state_dict().values()):
-            assert torch.equal(p, q)
+    assert_same_actors(plain.agent.to_actors(), again.agent.to_actors())
     aug = Trainer(_cfg(imitation_augment=0.25), tmp_path / "aug")
     aug.run(progress=False)
     assert len(aug.clone_buffer) == 40 * 6
@@ -106,24 +106,12 @@ def test_a_run_with_augmented_rows_interrupted_in_its_polish_resumes_exactly(tmp
     base = dict(imitation_augment=0.5, imitation_polish_steps=20, checkpoint_buffer=True)
     full = Trainer(_cfg(**base), tmp_path / "full")
     full.run(progress=False)
-    calls = {"n": 0}
-    real = MADDPG.clone_step
-
-    def flaky(self, obs, teach, only=None):
-        if only is not None:
-            calls["n"] += 1
-            if calls["n"] == 9:
-                raise KeyboardInterrupt
-        return real(self, obs, teach, only)
-
-    monkeypatch.setattr(MADDPG, "clone_step", flaky)
+    interrupt_polish_at(monkeypatch, 9)
     first = Trainer(_cfg(**base), tmp_path / "cut")
     assert first.run(progress=False).interrupted and first.polished == 8
     assert (tmp_path / "cut" / "checkpoints" / "clone_buffer.pt").is_file()
-    monkeypatch.setattr(MADDPG, "clone_step", real)
+    monkeypatch.undo()
     again = Trainer(_cfg(**base), tmp_path / "cut", resume=True)
     assert len(again.clone_buffer) == len(full.clone_buffer)
     again.run(progress=False)
-    for x, y in zip(again.agent.to_actors(), full.agent.to_actors()):
-        for p, q in zip(x.state_dict().values(), y.state_dict().values()):
-            assert torch.equal(p, q)
+    assert_same_actors(again.agent.to_actors(), full.agent.to_actors())

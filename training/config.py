@@ -258,9 +258,9 @@ class TrainConfig:
     """Share of every behaviour-cloning batch (DAgger's and the polish's) drawn from augmented rows instead of the
     replay buffer: at every DAgger step, that step's states with every evader's velocity redrawn (a uniform heading,
     a speed uniform up to the evader's top speed), observed and labelled by the teacher anew (``CloneBuffer``). The
-    DAgger rows hold the velocities the training evaders fly next to the team, mostly straight away from it; the
-    teacher's lead follows a target's velocity wherever it points, and the augmented rows show the clone that
-    (results/README.md, twenty-third attempt). 0: none."""
+    DAgger rows hold the velocities the training evaders fly next to the team, mostly straight away from it, while
+    the teacher's lead follows a target's velocity wherever it points. Measured, it did not bring the clone closer
+    to the held-out juker (results/README.md, twenty-third attempt); off in every shipped config. 0: none."""
     imitation_polish_steps: int = 0
     """When the imitation (DAgger) phase ends: this many more behaviour-cloning steps of the team's actors
     (pursuers and scouts), each on its own replay sample of ``imitation_batch`` transitions, with no env steps,

@@ -93,6 +93,13 @@ class _Ring:
         order = (torch.arange(n, device=self.device) + (self.ptr - n)) % self.capacity
         return {name: getattr(self, name)[order].cpu() for name in self.FIELDS}
 
+    def load_state_dict(self, sd: dict[str, Any]) -> None:
+        """The rows of ``state_dict``, oldest first (a smaller capacity keeps the newest)."""
+        self.ptr = 0
+        self.size = 0
+        if sd[self.FIELDS[0]].shape[0]:
+            self._write([sd[name] for name in self.FIELDS])
+
 
 class ReplayBuffer(_Ring):
     """Preallocated ring buffer of joint transitions (obs ``[N, D]``, actions ``[N, 2]``, rewards ``[N]``,
@@ -161,12 +168,6 @@ class CloneBuffer(_Ring):
     def add(self, obs: Any, teach: Any) -> None:
         """Append ``B`` rows (numpy or torch), wrapping around when full."""
         self._write((obs, teach))
-
-    def load_state_dict(self, sd: dict[str, Any]) -> None:
-        self.ptr = 0
-        self.size = 0
-        if sd["obs"].shape[0]:
-            self.add(sd["obs"], sd["teach"])
 
 
 def clip_grad_norm_per_agent(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
