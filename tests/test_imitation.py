@@ -37,6 +37,9 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "teacher_separation_gain": float("nan")}, "train.teacher_separation_gain"),
     ({"teacher": "classical", "teacher_assignment": "nearest"}, "train.teacher_assignment"),
     ({"teacher": "classical", "teacher_obstacle_softness": -0.1}, "train.teacher_obstacle_softness"),
+    ({"teacher": "classical", "teacher_lead_time": -0.1}, "train.teacher_lead_time"),
+    ({"teacher": "classical", "teacher_lead_others": float("inf")}, "train.teacher_lead_others"),
+    ({"teacher": "classical", "teacher_lead_others": 9.0}, "train.teacher_lead_others"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -155,6 +158,34 @@ def test_the_teacher_assignment_reaches_the_teacher_and_only_it(tmp_path):
     s.obstacle_pos[:] = 2.5
     p_local, p_central = trainer.teacher.act(obs, env)[:, :3], TeamPolicy(central, FleeingEvaders()).act(obs, env)[:, :3]
     assert np.abs(p_local - p_central).max() > 0.05
+
+
+def test_the_teacher_lead_times_reach_the_teacher_and_only_it(tmp_path):
+    """``train.teacher_lead_time`` / ``teacher_lead_others``: of two pursuers on one evader that flies across them,
+    the nearer aims ``teacher_lead_time`` ahead of it and the farther ``teacher_lead_others`` (each capped by its
+    distance over its top speed, as the classical team's lead); the defaults are the classical team's one lead."""
+    assert ClassicalPursuers().lead_time_others is None and ClassicalPursuers().lead_time_max == 0.6
+    assert TrainConfig().teacher_lead_time == TrainConfig().teacher_lead_others == 0.6
+    plain = Trainer(_cfg(teacher="classical", imitation_steps=100), tmp_path / "plain")
+    assert plain.teacher.pursuer_team.lead_time_others is None
+    trainer = Trainer(_cfg(teacher="classical", imitation_steps=100, teacher_lead_time=0.3, teacher_lead_others=0.9),
+                      tmp_path / "duo")
+    team = trainer.teacher.pursuer_team
+    assert (team.lead_time_max, team.lead_time_others) == (0.3, 0.9)
+    env = trainer.env
+    obs = env.reset()
+    s = env.state
+    s.pos[:, 0], s.pos[:, 1], s.pos[:, 2], s.pos[:, 3] = [-1.0, 0.0], [-2.0, 1.5], [2.0, -2.0], [0.0, 0.0]
+    s.vel[:, 3] = [0.0, 1.0]  # the evader flies up at 1 m/s
+    s.obstacle_pos[:] = 2.5  # far away
+    got = trainer.teacher.act(obs, env)[:, :2]
+    far = np.hypot(2.0, 1.5)
+    for i, goal in ((0, [0.0, 0.3]), (1, [0.0, min(far / env.spec.pursuer.max_speed, 0.9)])):
+        want = np.asarray(goal) - s.pos[:, i]
+        np.testing.assert_allclose(got[:, i], want / np.linalg.norm(want, axis=-1, keepdims=True), atol=1e-9)
+    one = ClassicalPursuers()
+    one.separation_gain, one.lead_time_max = trainer.tc.teacher_separation_gain, 0.3
+    assert np.abs(got - TeamPolicy(one, FleeingEvaders()).act(obs, env)[:, :2]).max() > 0.05
 
 
 def test_the_paper_configs_have_no_teacher():

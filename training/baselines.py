@@ -214,6 +214,10 @@ class ClassicalPursuers:
 
     lead_time_max = 0.6
     """Longest look-ahead [s] when leading an evader: ``min(distance / own speed, lead_time_max)``."""
+    lead_time_others: float | None = None
+    """None (the classical team): every pursuer leads by ``lead_time_max``. A number: only the pursuer nearest its
+    target among those assigned to it leads by ``lead_time_max``; the others lead by this longer or shorter
+    look-ahead [s] (``train.teacher_lead_others``: the first closes in, the rest head for where the target goes)."""
     obstacle_reach = 0.3
     """Distance from an obstacle's surface [m] where avoidance starts."""
     obstacle_repulsion = 0.5
@@ -282,7 +286,12 @@ class ClassicalPursuers:
         tp = ep[bi, target]
         tv = ev[bi, target]
         dist = np.linalg.norm(tp - pp, axis=-1, keepdims=True)
-        lead = np.minimum(dist / spec.pursuer.max_speed, self.lead_time_max)
+        lmax = self.lead_time_max
+        if self.lead_time_others is not None:
+            same = target[:, :, None] == target[:, None, :]  # [B, P, P]: pursuers sharing a target
+            ahead = same & (dist[:, None, :, 0] < dist[:, :, None, 0])  # ... that are nearer it (ties: neither)
+            lmax = np.where(ahead.any(-1, keepdims=True), self.lead_time_others, self.lead_time_max)
+        lead = np.minimum(dist / spec.pursuer.max_speed, lmax)
         hw = spec.arena.half_width
         goal = np.clip(tp + tv * lead, -hw, hw)
         return _unit(goal - pp)

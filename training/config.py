@@ -217,6 +217,14 @@ class TrainConfig:
     "central" (the classical team's: one Hungarian assignment over every pursuer, which reads the whole state), or
     "local": each pursuer's own over itself and the teammates its observation lists, a label that is a function of
     what the student sees (``results/issue13/assignment_info.py``)."""
+    teacher_lead_time: float = 0.6
+    """The classical teacher's longest look-ahead [s] on its target (``ClassicalPursuers.lead_time_max``; 0.6 is the
+    classical team's)."""
+    teacher_lead_others: float = 0.6
+    """The classical teacher's look-ahead [s] for a pursuer that is not the nearest to its target among those
+    assigned to it (``ClassicalPursuers.lead_time_others``): the nearest leads by ``teacher_lead_time`` and closes
+    in, the others head further ahead. Equal to ``teacher_lead_time`` (the default): one lead for all, the classical
+    team's (``results/issue13/teacher_variants.py``, ``duo``)."""
     imitation_steps: int = 0
     """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
     beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor
@@ -359,6 +367,11 @@ class TrainConfig:
         if not (math.isfinite(self.teacher_separation_gain) and self.teacher_separation_gain >= 0):
             raise SpecError(f"train.teacher_separation_gain: must be a finite number >= 0, got "
                             f"{self.teacher_separation_gain!r}")
+        for name in ("teacher_lead_time", "teacher_lead_others"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 5.0):
+                raise SpecError(f"train.{name}: must be a look-ahead in [0, 5] s (0.6: the classical team's), got "
+                                f"{v!r}")
         if not (math.isfinite(self.teacher_obstacle_softness) and self.teacher_obstacle_softness >= 0):
             raise SpecError(f"train.teacher_obstacle_softness: must be a finite number >= 0 (0: the classical "
                             f"team's), got {self.teacher_obstacle_softness!r}")

@@ -195,6 +195,9 @@ class Trainer:
             pursuers.separation_gain = tc.teacher_separation_gain
             pursuers.assignment = tc.teacher_assignment
             pursuers.obstacle_side_softness = tc.teacher_obstacle_softness
+            pursuers.lead_time_max = tc.teacher_lead_time
+            if tc.teacher_lead_others != tc.teacher_lead_time:
+                pursuers.lead_time_others = tc.teacher_lead_others
             self.teacher = TeamPolicy(pursuers, FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
         # the polish's own sample stream, so that the run's others are those of a run without it
