@@ -369,7 +369,7 @@ class TrainConfig:
                             f"{self.teacher_separation_gain!r}")
         for name in ("teacher_lead_time", "teacher_lead_others"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 5.0):
+            if not (math.isfinite(v) and 0.0 <= v <= 5.0):  # the loader has checked it is a number
                 raise SpecError(f"train.{name}: must be a look-ahead in [0, 5] s (0.6: the classical team's), got "
                                 f"{v!r}")
         if not (math.isfinite(self.teacher_obstacle_softness) and self.teacher_obstacle_softness >= 0):

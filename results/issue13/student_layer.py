@@ -29,7 +29,7 @@ def variant(spec, text):
 
 
 for run in runs:
-    cfg, learned, src = load_source(run)
+    cfg, learned, _ = load_source(run)
     for text in variants:
         spec = variant(cfg.spec, text)
         c = dataclasses.replace(cfg, spec=spec)
