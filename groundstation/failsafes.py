@@ -103,10 +103,6 @@ class FailsafeSupervisor(RoleRepair):
                 why = self._failsafe(d, now, judge_silence)
                 if why is not None:
                     reassign.append(f"{d.id}: {why}")
-            elif st is DroneStatus.LOST and now - d.land_sent_t >= cfg.land_retry:
-                self._send_land(d, now)
-                if not d.link.link_lost:  # it answers again: land it properly
-                    self._set_status(d, DroneStatus.LANDING, "link back")
         self._check_landings(now)
         if reassign and self.actors:
             self._reassign("; ".join(reassign))
@@ -221,6 +217,15 @@ class FailsafeSupervisor(RoleRepair):
         ended) the command is repeated, every ``LAND_CONFIRM_RETRY`` s at first; a Crazyflie that took the
         hand-over but not the land cuts its motors at once."""
         for d in self.drones.values():
+            if d.status is DroneStatus.LOST:
+                # land commands keep going out in case the link comes back; once it answers, land it properly
+                if now - d.land_sent_t >= self.config.land_retry:
+                    self._send_land(d, now)
+                    if not d.link.link_lost:
+                        with d.lock:
+                            if d.status is DroneStatus.LOST:  # not already moved on by the other caller
+                                self._set_status(d, DroneStatus.LANDING, "link back")
+                continue
             if d.status is not DroneStatus.LANDING:
                 continue
             tel = d.link.telemetry()

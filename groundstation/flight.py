@@ -299,20 +299,32 @@ class FlightSession(SetpointPath, FailsafeSupervisor):
             self._reassign(f"{drone_id} landing: {reason}")
 
     def land_all(self, reason: str = "end of flight", wait: bool = True) -> dict[str, DroneStatus]:
-        """Land every drone in the air; with ``wait`` block until each reports landed (lost drones cannot)
-        or ``land_timeout`` passes. Returns the final statuses."""
+        """Land every drone in the air; with ``wait`` block until each reports landed or ``land_timeout``
+        passes. Returns the final statuses.
+
+        A drone whose link is lost is waited for too while it may still answer (heard within the last
+        ``land_timeout``): a link that drops out for a moment during the landing (a loaded ground station, a
+        radio fade) comes back, and the drone is then landed and seen on the ground, instead of this returning
+        at once and the caller closing a link to a drone still in the air. A drone silent for longer is left
+        to its own firmware (the land commands went out all along)."""
         self._mission = False
         for d in self.drones.values():
             if d.status in AIRBORNE:
                 self._begin_landing(d, reason)
         if wait:
             deadline = time.monotonic() + self.config.land_timeout
-            while time.monotonic() < deadline:
-                self._check_landings(time.monotonic())
-                if not any(d.status is DroneStatus.LANDING for d in self.drones.values()):
+            while (now := time.monotonic()) < deadline:
+                self._check_landings(now)
+                if not any(self._coming_down(d, now) for d in self.drones.values()):
                     break
                 time.sleep(0.05)
         return self.statuses()
+
+    def _coming_down(self, d: DroneState, now: float) -> bool:
+        """``land_all`` waits for this drone: it is landing, or lost but heard within ``land_timeout``."""
+        if d.status is DroneStatus.LANDING:
+            return True
+        return d.status is DroneStatus.LOST and d.link.telemetry_age(now) < self.config.land_timeout
 
     def emergency_stop(self, reason: str = "operator") -> None:
         """Cut every drone's motors now (they fall and stay locked until rebooted)."""

@@ -194,6 +194,38 @@ def test_ctrl_c_lands_and_emergency_stop_locks():
             _close(links)
 
 
+def test_a_link_that_drops_out_while_landing_is_waited_for_and_the_drone_landed():
+    # CI once: all three drones' telemetry fell silent for a moment during land_all on a loaded machine; land_all
+    # returned at once with them LOST and the caller closed the links of drones still in the air
+    import threading
+    fence = FenceConfig.from_spec(small_spec())
+    starts = np.array([[0.0, 0.0, 0.0], [0.8, 0.0, 0.0]])
+    with SimSwarm(2, base_port=free_base_port(2, seed=24), seed=4, start_positions=starts) as sims:
+        session, links = _session(sims, fence, actors=ACTORS[:2])
+        try:
+            with session:
+                session.preflight()
+                assert sorted(session.takeoff()) == ["cf0", "cf1"]
+                for i in range(2):
+                    sims.kill_link(i)
+
+                def come_back() -> None:  # once the ground station has found both lost (generous: never a pass)
+                    if wait_until(lambda: set(session.statuses().values()) == {DroneStatus.LOST}, 20.0):
+                        for i in range(2):
+                            sims.restore_link(i)
+                back = threading.Thread(target=come_back)
+                back.start()
+                statuses = session.land_all()
+                back.join(timeout=30.0)
+            assert statuses == {"cf0": DroneStatus.LANDED, "cf1": DroneStatus.LANDED}
+            for d in ("cf0", "cf1"):
+                changes = session.events_of("status", d)
+                assert any(e.data["to"] == "lost" for e in changes) and any("link back" in e.detail for e in changes)
+            assert wait_until(lambda: all(on_ground(sims.truth(i)) for i in range(2)), 5.0)
+        finally:
+            _close(links)
+
+
 # ---- swarm-gs fly / land / status over simulated drones --------------------------------------------
 
 def test_fleet_commands_over_udp(tmp_path, capsys):
