@@ -1,10 +1,14 @@
 """The live view's page in a real browser: Debian's headless Chromium driven by Selenium through the system
 chromedriver (no browser download). During a short demo (5 simulated Crazyflies through cflib) the page draws
-every drone, its table updates, the emergency stop asks for a confirmation, and "Land all" lands every drone;
-a screenshot of the flight is written to results/liveview.png.
+every drone, its table updates, the emergency stop asks for a confirmation, and "Land all" lands every drone.
+A screenshot of the flight is taken; the test writes it in its own temporary folder, so that a test run leaves the
+checkout as it found it. The README's picture is regenerated with
+
+    LIVEVIEW_SCREENSHOT=results/liveview.png .venv/bin/python -m pytest tests/test_liveview_browser.py -k draws
 """
 from __future__ import annotations
 
+import os
 import shutil
 import threading
 from pathlib import Path
@@ -28,7 +32,8 @@ from groundstation.liveview import LiveView  # noqa: E402
 from test_liveview import post, tolerant_flight  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-SCREENSHOT = ROOT / "results" / "liveview.png"
+SCREENSHOT_ENV = "LIVEVIEW_SCREENSHOT"
+"""Where the flight's screenshot goes (relative to the checkout); unset, the test's temporary folder."""
 DOWN = {"landed", "lost"}
 """Statuses of a drone brought down: "lost" is one whose link timed out (its watchdog lands it), only seen when the
 machine is so loaded that the ground station stalls."""
@@ -52,6 +57,7 @@ def browser():
 def test_page_draws_the_swarm_updates_and_lands_it(browser, tmp_path):
     from selenium.webdriver.common.by import By
     models = write_models(tmp_path / "models", small_spec(), seed=3)
+    screenshot = ROOT / os.environ[SCREENSHOT_ENV] if os.environ.get(SCREENSHOT_ENV) else tmp_path / "liveview.png"
     box: dict = {}
     with LiveView(port=0) as view:
         def fly():
@@ -92,8 +98,8 @@ def test_page_draws_the_swarm_updates_and_lands_it(browser, tmp_path):
             assert wait_until(confirm.is_displayed, timeout=2, period=0.05)
             browser.find_element(By.ID, "estop-no").click()
             assert wait_until(lambda: not confirm.is_displayed(), timeout=2, period=0.05)
-            SCREENSHOT.parent.mkdir(exist_ok=True)
-            assert browser.save_screenshot(str(SCREENSHOT))
+            screenshot.parent.mkdir(parents=True, exist_ok=True)
+            assert browser.save_screenshot(str(screenshot))
             assert "stopped" not in statuses()  # cancelled: nothing was stopped
             # land all from the page
             browser.find_element(By.ID, "land-all").click()
@@ -109,7 +115,7 @@ def test_page_draws_the_swarm_updates_and_lands_it(browser, tmp_path):
             if thread.is_alive():
                 post(view, "/api/land_all")
                 thread.join(timeout=60)
-    assert SCREENSHOT.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert screenshot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_replay_bar_pauses_and_seeks(browser):
