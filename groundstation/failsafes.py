@@ -98,8 +98,7 @@ class FailsafeSupervisor(RoleRepair):
                         {"gap_s": gap})
         judge_silence = now >= self._grace_until
         for d in self.drones.values():
-            st = d.status
-            if st in AIRBORNE:
+            if d.status in AIRBORNE:
                 why = self._failsafe(d, now, judge_silence)
                 if why is not None:
                     reassign.append(f"{d.id}: {why}")

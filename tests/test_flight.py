@@ -2,6 +2,7 @@
 setpoint, landing on exceptions and Ctrl-C, emergency stop, the fleet file and ``swarm-gs fly/land/status``."""
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -197,7 +198,6 @@ def test_ctrl_c_lands_and_emergency_stop_locks():
 def test_a_link_that_drops_out_while_landing_is_waited_for_and_the_drone_landed():
     # CI once: all three drones' telemetry fell silent for a moment during land_all on a loaded machine; land_all
     # returned at once with them LOST and the caller closed the links of drones still in the air
-    import threading
     fence = FenceConfig.from_spec(small_spec())
     starts = np.array([[0.0, 0.0, 0.0], [0.8, 0.0, 0.0]])
     with SimSwarm(2, base_port=free_base_port(2, seed=24), seed=4, start_positions=starts) as sims:
