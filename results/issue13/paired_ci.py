@@ -3,9 +3,13 @@ scripted evaders with the same drawn parameters), so their difference can be tak
 and evader kind: the mean per-episode difference learned - classical in min distance [m] and in tracking rate, with
 a paired bootstrap 95% interval over the episodes (10,000 resamples from one generator, seeded 0, drawn in the
 order printed: another selection of runs or kinds moves an interval's ends by about 0.0001), and whether the interval
-excludes 0. The same episodes as `swarm-train evaluate --episodes 200 --seed 0` (evaluation seed 0, 50 envs a round).
+excludes 0. The same episodes as `swarm-train evaluate --episodes 200 --seed 0` (evaluation seed 0, 50 envs a round);
+`--seed 0,1,2` pools the episodes of several evaluation seeds (each the episodes of `swarm-train evaluate --seed S`,
+each scripted kind drawing its parameters from that seed) into one interval, and prints each seed's mean difference
+beside it.
 
     .venv/bin/python results/issue13/paired_ci.py RUN [RUN ...] [--evader suite:perimeter,hider,juker] [--episodes 200]
+        [--seed 0 | --seed 0,1,2]
 """
 import argparse
 
@@ -18,8 +22,12 @@ p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 p.add_argument("runs", nargs="+", help="run folders (runs/NAME_sS) or models folders")
 p.add_argument("--evader", default="suite:perimeter,hider,juker", help="as swarm-train evaluate's --evader")
 p.add_argument("--episodes", type=int, default=200)
-p.add_argument("--seed", type=int, default=0)
+p.add_argument("--seed", default="0", help="evaluation seed, or several comma-separated to pool (default 0)")
 args = p.parse_args()
+try:
+    seeds = [int(x) for x in args.seed.split(",")]
+except ValueError:
+    p.error(f"--seed: {args.seed!r} is not an integer or a comma-separated list of integers (e.g. 0 or 0,1,2)")
 rng = np.random.default_rng(0)
 
 
@@ -36,15 +44,24 @@ def cell(m: float, lo: float, hi: float, lower_is_better: bool) -> str:
     return f"{m:+.4f} [{lo:+.4f}, {hi:+.4f}]" + (f" {verdict}" if verdict else "")
 
 
-print(f"{args.episodes} episodes per kind, evaluation seed {args.seed}; learned - classical, paired bootstrap 95%")
+if len(seeds) == 1:
+    print(f"{args.episodes} episodes per kind, evaluation seed {seeds[0]}; learned - classical, paired bootstrap 95%")
+else:
+    print(f"{args.episodes} episodes per kind and evaluation seed, seeds {args.seed} pooled "
+          f"({args.episodes * len(seeds)} episodes); learned - classical, paired bootstrap 95%, then each seed's mean")
 for run in args.runs:
     cfg, learned, name = load_source(run)
     for kind in expand(args.evader):
-        ours: list = []
-        theirs: list = []
-        evaluate_kind(cfg, learned, kind, args.episodes, args.seed, n_envs=50, classical=True, progress=False,
-                      records=(ours, theirs))
-        dd = np.array([a.min_dist - b.min_dist for a, b in zip(ours, theirs)])
-        dt = np.array([a.tracking_rate - b.tracking_rate for a, b in zip(ours, theirs)])
-        print(f"{run:28s} {label(kind):10s} min dist {cell(*ci(dd), True):44s} tracking {cell(*ci(dt), False)}",
-              flush=True)
+        dd, dt = [], []
+        for seed in seeds:
+            ours: list = []
+            theirs: list = []
+            evaluate_kind(cfg, learned, kind, args.episodes, seed, n_envs=50, classical=True, progress=False,
+                          records=(ours, theirs))
+            dd.append(np.array([a.min_dist - b.min_dist for a, b in zip(ours, theirs)]))
+            dt.append(np.array([a.tracking_rate - b.tracking_rate for a, b in zip(ours, theirs)]))
+        line = (f"{run:28s} {label(kind):10s} min dist {cell(*ci(np.concatenate(dd)), True):44s} "
+                f"tracking {cell(*ci(np.concatenate(dt)), False)}")
+        if len(seeds) > 1:
+            line += ("  per seed: " + ", ".join(f"{x.mean():+.4f} / {y.mean():+.4f}" for x, y in zip(dd, dt)))
+        print(line, flush=True)
