@@ -28,6 +28,8 @@ try:
     seeds = [int(x) for x in args.seed.split(",")]
 except ValueError:
     p.error(f"--seed: {args.seed!r} is not an integer or a comma-separated list of integers (e.g. 0 or 0,1,2)")
+if len(set(seeds)) != len(seeds):
+    p.error(f"--seed: {args.seed!r} names a seed twice, which would count its episodes twice: give each seed once")
 rng = np.random.default_rng(0)
 
 
