@@ -11,6 +11,7 @@ from training.baselines import (ClassicalPursuers, FleeingEvaders, Policy, Rando
 from training.config import ExperimentConfig
 from training.env import PursuitEnv
 from training.evaluate import evaluate
+from training.voronoi import bounded_cells
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -240,3 +241,58 @@ def test_the_classical_team_is_at_least_as_strong_as_its_recorded_baseline(role_
     assert now["mean_min_dist"] <= doc["mean_min_dist"] + 1e-9
     assert now["tracking_rate"] >= doc["tracking_rate"] - 1e-9
     assert now["coverage"] >= doc["coverage"] - 1e-9
+
+
+def test_the_classical_team_on_its_observations_flies_as_the_full_information_one_when_it_sees_everything(role_based):
+    """``information = "observed"`` reads the targets and the team's split from each pursuer's observation. With full
+    observability the observation holds the true targets (age 0) and the ``assigned`` field is the classical team's
+    assignment, so its actions are the full-information team's, over many steps of a running episode."""
+    env = PursuitEnv(role_based.spec, n_envs=16, seed=5)
+    obs = env.reset()
+    full, observed = ClassicalPursuers(), ClassicalPursuers()
+    observed.information = "observed"
+    evaders = FleeingEvaders()
+    for _ in range(30):
+        a = full.act(obs, env)
+        np.testing.assert_allclose(observed.act(obs, env), a, rtol=0, atol=1e-9)
+        a[:, role_based.spec.team.n_team:] = evaders.act(obs, env)[:, role_based.spec.team.n_team:]
+        obs, *_ = env.step(a)
+    bad = ClassicalPursuers()
+    bad.information = "oracle"
+    with pytest.raises(ValueError, match="information"):
+        bad.act(obs, env)
+
+
+def test_the_classical_team_on_its_observations_searches_when_it_knows_no_target(role_based):
+    """With partial observability some pursuers know a target and some none; every action is finite; a pursuer that
+    knows no target makes Lloyd's step (as a scout does); and the option needs the split in the observation."""
+    spec = role_based.spec
+    partial = dataclasses.replace(spec, sensing=dataclasses.replace(spec.sensing, observability="partial"))
+    env = PursuitEnv(partial, n_envs=64, seed=7)
+    obs = env.reset()
+    team = ClassicalPursuers()
+    team.information = "observed"
+    lay = partial.layout(Role.PURSUER)
+    p = np.asarray(partial.team.indices(Role.PURSUER))
+    known = obs[:, p][..., lay["targets"].slice].reshape(64, p.size, partial.team.n_evaders, 6)[..., 5] > 0.5
+    assert (~known.any(-1)).any() and known.any(-1).any()  # both cases occur
+    a = team.act(obs, env)
+    assert np.isfinite(a).all()
+    blind = ClassicalPursuers()
+    blind.information = "observed"
+    obs_blind = obs.copy()
+    obs_blind[:, p, lay["targets"].start:lay["targets"].start + lay["targets"].size] = 0.0
+    obs_blind[:, p, lay["assigned"].slice] = 0.0
+    # every pursuer blind: each one's wish is a scout's Lloyd step, through the same avoidance field
+    scouts_like = blind.act(obs_blind, env)
+    s = env.state
+    cent = bounded_cells(s.pos, partial.arena.half_width)[1]
+    step = cent[:, p] - s.pos[:, p]
+    moving = np.linalg.norm(scouts_like[:, p], axis=-1) > 1e-6
+    cos = (scouts_like[:, p] * step).sum(-1) / np.maximum(np.linalg.norm(scouts_like[:, p], axis=-1)
+                                                         * np.linalg.norm(step, axis=-1), 1e-12)
+    assert np.median(cos[moving]) > 0.9  # mostly along the Lloyd step (the avoidance field bends some)
+    no_split = dataclasses.replace(spec, sensing=dataclasses.replace(spec.sensing, share_assignment=False))
+    env2 = PursuitEnv(no_split, n_envs=2, seed=1)
+    with pytest.raises(ValueError, match="share_assignment"):
+        team.act(env2.reset(), env2)

@@ -9,7 +9,9 @@ another, so learned pursuers can meet scripted evaders and the other way round.
 
 The classical team is a **centralized, full-information** baseline: it reads the true world state from
 ``env.state`` (every position, velocity and obstacle), not the agents' observations, whatever the spec's
-``observability``. It is the bar that learned policies have to beat, not a deployable controller.
+``observability``. It is the bar that learned policies have to beat, not a deployable controller. One option flies
+it on the pursuers' own observations instead (``ClassicalPursuers.information = "observed"``): the bar for a team
+trained with partial observability, which knows what each drone senses or hears, and no more.
 
 - pursuers: assigned to evaders by the Hungarian method (scipy's ``linear_sum_assignment`` per env) with
   each evader replicated ``ceil(n_p / n_e)`` times, so each gets about ``n_p / n_e`` pursuers; each flies at
@@ -240,6 +242,15 @@ class ClassicalPursuers:
     assignment over every pursuer; "local": each pursuer's own over itself and the teammates its observation lists
     (``local_assign_targets``), for a teacher whose choice of target a decentralized student can learn."""
 
+    information = "full"
+    """What the pursuers know of the targets: "full" (the classical team, the bar): the true state; "observed": each
+    pursuer only what its own observation holds (``runtime.observation``'s one encoder: the ``targets`` field's last
+    known position and velocity, and the team's split from the ``assigned`` field, so that it needs
+    ``sensing.share_assignment``), flying at the last known position carried forward by the sighting's age, and, knowing
+    no target, searching as a scout does (Lloyd's step). With full observability it acts as "full" does; with
+    ``sensing.observability = "partial"`` it is the classical team on a drone's own knowledge: the fair bar for a
+    partial-observability team (results/issue13/classical_partial.py)."""
+
     def act(self, obs: np.ndarray, env) -> np.ndarray:
         spec: SwarmSpec = env.spec
         s = env.state
@@ -252,16 +263,20 @@ class ClassicalPursuers:
         team_pos = s.pos[:, :nt]
         wish = np.zeros((b, nt, 2))
         p = np.asarray(t.indices(Role.PURSUER))
-        if p.size:
+        sc = np.asarray(t.indices(Role.SCOUT))
+        if self.information not in ("full", "observed"):
+            raise ValueError(f"ClassicalPursuers.information: {self.information!r} is not 'full' or 'observed'")
+        centroids = bounded_cells(s.pos, hw)[1] if sc.size or self.information == "observed" else None
+        if p.size and self.information == "observed":
+            wish[:, p] = self._pursue_observed(spec, obs[:, p], s.pos[:, p], centroids[:, p])
+        elif p.size:
             target = None
             if self.assignment == "local":
                 target = local_assign_targets(team_pos, p, s.pos[:, nt:], spec.sensing.n_teammates_observed)
             elif self.assignment != "central":
                 raise ValueError(f"ClassicalPursuers.assignment: {self.assignment!r} is not 'central' or 'local'")
             wish[:, p] = self._pursue(spec, s.pos[:, p], s.pos[:, nt:], s.vel[:, nt:], target)
-        sc = np.asarray(t.indices(Role.SCOUT))
         if sc.size:
-            _, centroids = bounded_cells(s.pos, hw)
             wish[:, sc] = _clip_norm(self.lloyd_gain * (centroids[:, sc] - s.pos[:, sc]))
         v = wish + separation(team_pos, team_pos, self.separation_reach, self.separation_gain)
         v = avoid_obstacles(team_pos, v, radius[:nt], s.obstacle_pos, s.obstacle_radius,
@@ -275,6 +290,29 @@ class ClassicalPursuers:
         if self.wall_reach is not None:
             return self.wall_reach
         return 2.0 * max(spec.per_agent("radius")[:spec.team.n_team])
+
+    def _pursue_observed(self, spec: SwarmSpec, obs: np.ndarray, pp: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+        """``information = "observed"``: the pursuers' wishes ``[B, P, 2]`` from their observations ``obs``
+        ``[B, P, D]`` alone (positions ``pp`` and Lloyd ``centroids`` only for those that know no target)."""
+        lay = spec.layout(Role.PURSUER)
+        if "assigned" not in lay.names():
+            raise ValueError("ClassicalPursuers.information = 'observed' takes the team's split from the observation's "
+                             "`assigned` field: set sensing.share_assignment = true in the spec")
+        e = spec.team.n_evaders
+        tg = obs[..., lay["targets"].slice].reshape(obs.shape[:2] + (e, 6))  # dx, dy, vx, vy, age, known
+        mine = obs[..., lay["assigned"].slice] > 0.5  # [B, P, E]
+        known = tg[..., 5] > 0.5
+        dist = np.hypot(tg[..., 0], tg[..., 1])
+        # the assigned target; a known one without a split (not possible with two targets known): the nearest
+        choice = np.where(mine.any(-1), mine.argmax(-1), np.where(known, dist, np.inf).argmin(-1))  # [B, P]
+        pick = np.take_along_axis(tg, choice[..., None, None], axis=2)[:, :, 0]  # [B, P, 6]
+        d = np.linalg.norm(pick[..., :2], axis=-1, keepdims=True)
+        lead = np.minimum(d / spec.pursuer.max_speed, self.lead_time_max)
+        hw = spec.arena.half_width
+        goal = np.clip(pp + pick[..., :2] + pick[..., 2:4] * (pick[..., 4:5] + lead), -hw, hw)
+        chase = _unit(goal - pp)
+        search = _clip_norm(self.lloyd_gain * (centroids - pp))
+        return np.where(known.any(-1, keepdims=True), chase, search)
 
     def _pursue(self, spec: SwarmSpec, pp: np.ndarray, ep: np.ndarray, ev: np.ndarray,
                 target: np.ndarray | None = None) -> np.ndarray:
