@@ -298,18 +298,20 @@ class ClassicalPursuers:
         if "assigned" not in lay.names():
             raise ValueError("ClassicalPursuers.information = 'observed' takes the team's split from the observation's "
                              "`assigned` field: set sensing.share_assignment = true in the spec")
-        e = spec.team.n_evaders
-        tg = obs[..., lay["targets"].slice].reshape(obs.shape[:2] + (e, 6))  # dx, dy, vx, vy, age, known
+        field = lay["targets"]
+        col = {c: i for i, c in enumerate(field.columns)}  # dx, dy, vx, vy, age, known (runtime.spec)
+        rel, vel = [col["dx"], col["dy"]], [col["vx"], col["vy"]]
+        tg = obs[..., field.slice].reshape(obs.shape[:2] + (field.rows, len(field.columns)))  # [B, P, E, columns]
         mine = obs[..., lay["assigned"].slice] > 0.5  # [B, P, E]
-        known = tg[..., 5] > 0.5
-        dist = np.hypot(tg[..., 0], tg[..., 1])
+        known = tg[..., col["known"]] > 0.5
+        dist = np.linalg.norm(tg[..., rel], axis=-1)
         # the assigned target; a known one without a split (not possible with two targets known): the nearest
         choice = np.where(mine.any(-1), mine.argmax(-1), np.where(known, dist, np.inf).argmin(-1))  # [B, P]
-        pick = np.take_along_axis(tg, choice[..., None, None], axis=2)[:, :, 0]  # [B, P, 6]
-        d = np.linalg.norm(pick[..., :2], axis=-1, keepdims=True)
+        pick = np.take_along_axis(tg, choice[..., None, None], axis=2)[:, :, 0]  # [B, P, columns]
+        d = np.linalg.norm(pick[..., rel], axis=-1, keepdims=True)
         lead = np.minimum(d / spec.pursuer.max_speed, self.lead_time_max)
         hw = spec.arena.half_width
-        goal = np.clip(pp + pick[..., :2] + pick[..., 2:4] * (pick[..., 4:5] + lead), -hw, hw)
+        goal = np.clip(pp + pick[..., rel] + pick[..., vel] * (pick[..., col["age"]][..., None] + lead), -hw, hw)
         chase = _unit(goal - pp)
         search = _clip_norm(self.lloyd_gain * (centroids - pp))
         return np.where(known.any(-1, keepdims=True), chase, search)
