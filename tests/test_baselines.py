@@ -281,7 +281,7 @@ def test_the_classical_team_on_its_observations_searches_when_it_knows_no_target
     blind = ClassicalPursuers()
     blind.information = "observed"
     obs_blind = obs.copy()
-    obs_blind[:, p, lay["targets"].start:lay["targets"].start + lay["targets"].size] = 0.0
+    obs_blind[:, p, lay["targets"].slice] = 0.0
     obs_blind[:, p, lay["assigned"].slice] = 0.0
     # every pursuer blind: each one's wish is a scout's Lloyd step, through the same avoidance field
     scouts_like = blind.act(obs_blind, env)

@@ -29,30 +29,36 @@ args = p.parse_args()
 
 observed = ClassicalPursuers()
 observed.information = "observed"
+sources = [load_source(run) for run in args.runs]
+for run, (cfg, _, _) in zip(args.runs, sources):
+    if cfg.spec.sensing.observability != "partial":
+        p.error(f"{run}: its spec has sensing.observability = {cfg.spec.sensing.observability!r}; give runs of a "
+                "partial-observability config")
+TEAMS = ("learned", "classical_observed", "classical")
 out: dict = {"episodes": args.episodes, "seed": args.seed, "runs": args.runs, "kinds": {}}
 print(f"{args.episodes} held-out episodes per kind and run, evaluation seed {args.seed}; min dist [m] / tracking; "
       "mean over the runs (the scripted kinds are the same episodes for every run)")
 print(f"{'evaders':11s} {'learned, partial':18s} {'classical, own observation':28s} {'classical, full state':22s}")
 for kind in expand("all"):
-    rows = []
-    for run in args.runs:
-        cfg, learned, _ = load_source(run)
-        if cfg.spec.sensing.observability != "partial":
-            p.error(f"{run}: its spec has sensing.observability = {cfg.spec.sensing.observability!r}; give runs of a "
-                    "partial-observability config")
-        res = evaluate_kind(cfg, learned, kind, args.episodes, args.seed, n_envs=50, classical=True, progress=False)
-        res["classical_observed"] = evaluate(cfg, TeamPolicy(observed, make_evaders(kind, args.seed, learned)),
-                                             args.episodes, seed=args.seed, n_envs=50, progress=False)
+    rows, shared = [], None  # the classical teams against scripted evaders: the same episodes for every run
+    for cfg, learned, _ in sources:
+        res = evaluate_kind(cfg, learned, kind, args.episodes, args.seed, n_envs=50, classical=shared is None,
+                            progress=False)
+        if shared is None:
+            res["classical_observed"] = evaluate(cfg, TeamPolicy(observed, make_evaders(kind, args.seed, learned)),
+                                                 args.episodes, seed=args.seed, n_envs=50, progress=False)
+            if kind != "learned":
+                shared = {k: res[k] for k in TEAMS[1:]}
+        else:
+            res.update(shared)
         rows.append(res)
-    fig = {k: (float(np.mean([r[k]["mean_min_dist"] if k != "learned" else r["mean_min_dist"] for r in rows])),
-               float(np.mean([r[k]["tracking_rate"] if k != "learned" else r["tracking_rate"] for r in rows])))
-           for k in ("learned", "classical_observed", "classical")}
+    fig = {k: tuple(float(np.mean([(r if k == "learned" else r[k])[m] for r in rows]))
+                    for m in ("mean_min_dist", "tracking_rate")) for k in TEAMS}
     out["kinds"][label(kind)] = {"per_run": rows, "mean": fig}
     cell = {k: f"{d:.3f} / {t:.3f}" for k, (d, t) in fig.items()}
     print(f"{label(kind):11s} {cell['learned']:18s} {cell['classical_observed']:28s} {cell['classical']:22s}", flush=True)
 suite = [label(k) for k in expand("all") if k.startswith("suite:")]
-mean = {k: tuple(float(np.mean([out["kinds"][s]["mean"][k][i] for s in suite])) for i in (0, 1))
-        for k in ("learned", "classical_observed", "classical")}
+mean = {k: tuple(float(np.mean([out["kinds"][s]["mean"][k][i] for s in suite])) for i in (0, 1)) for k in TEAMS}
 out["suite_mean"] = mean
 cell = {k: f"{d:.3f} / {t:.3f}" for k, (d, t) in mean.items()}
 print(f"{'suite mean':11s} {cell['learned']:18s} {cell['classical_observed']:28s} {cell['classical']:22s}")
