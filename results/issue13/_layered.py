@@ -3,13 +3,13 @@
 suite line that teacher_lead.py and teacher_pincer.py print."""
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from runtime.avoidance import avoid_agents, avoid_rows, role_tables
 from runtime.spec import SwarmSpec
-from training.baselines import ClassicalPursuers, TeamPolicy
+from training.baselines import ClassicalPursuers, FleeingEvaders, TeamPolicy
 from training.evader_suite import SUITE, make_suite_evader
 from training.evaluate import evaluate, mean_of
 
@@ -38,11 +38,22 @@ class LayeredClassical:
         return a
 
 
-def print_suite_line(cfg: Any, label: str, make: Callable[[], Any], episodes: int) -> None:
-    """Fly a team from ``make()`` (a new one per kind) against every held-out suite kind, ``episodes`` episodes each
-    (evaluation seed 0), and print one line: the suite mean and each kind's min distance [m] / tracking."""
-    per = {kind: evaluate(cfg, TeamPolicy(make(), make_suite_evader(kind, 0)), episodes, seed=0, progress=False)
-           for kind in SUITE}
-    m = mean_of(list(per.values()))
-    print(f"{label}: suite {m['mean_min_dist']:.3f}/{m['tracking_rate']:.3f} tc {m['team_contacts_per_episode']:.2f}   "
-          + "  ".join(f"{k} {v['mean_min_dist']:.3f}/{v['tracking_rate']:.3f}" for k, v in per.items()), flush=True)
+def print_suite_line(cfg: Any, label: str, make: Callable[[], Any], episodes: int, seeds: Sequence[int] = (0,),
+                     scripted: bool = False, digits: int = 3) -> None:
+    """Fly a team from ``make()`` (a new one per kind and seed) against every held-out suite kind, ``episodes``
+    episodes each per evaluation seed in ``seeds`` (default: seed 0 alone; several: their episodes pooled, each seed's
+    scripted kinds drawing their parameters from it, as ``swarm-train evaluate --seed S`` does), and print one line:
+    the suite mean and each kind's min distance [m] / tracking, to ``digits`` decimals; ``scripted``: the scripted
+    fleeing evaders last."""
+    kinds = list(SUITE) + (["scripted"] if scripted else [])
+
+    def evader(kind: str, seed: int) -> Any:
+        return FleeingEvaders() if kind == "scripted" else make_suite_evader(kind, seed)
+
+    per = {kind: mean_of([evaluate(cfg, TeamPolicy(make(), evader(kind, seed)), episodes, seed=seed, progress=False)
+                          for seed in seeds]) for kind in kinds}
+    m = mean_of([per[kind] for kind in SUITE])
+    print(f"{label}: suite {m['mean_min_dist']:.{digits}f}/{m['tracking_rate']:.{digits}f} "
+          f"tc {m['team_contacts_per_episode']:.2f}   "
+          + "  ".join(f"{k} {v['mean_min_dist']:.{digits}f}/{v['tracking_rate']:.{digits}f}" for k, v in per.items()),
+          flush=True)

@@ -9,9 +9,15 @@ each scripted kind drawing its parameters from that seed) into one interval, and
 beside it.
 
     .venv/bin/python results/issue13/paired_ci.py RUN [RUN ...] [--evader suite:perimeter,hider,juker] [--episodes 200]
-        [--seed 0 | --seed 0,1,2]
+        [--seed 0 | --seed 0,1,2] [--json PATH]
+
+``--json``: also write, per run, kind and evaluation seed, both teams' means (min distance, tracking, coverage,
+teammate and team-obstacle contacts per episode) and each pooled interval, so that the wins, the contacts and the
+coverage of every seed are read off the same episodes as the intervals.
 """
 import argparse
+import json
+import os
 
 import numpy as np
 
@@ -23,6 +29,7 @@ p.add_argument("runs", nargs="+", help="run folders (runs/NAME_sS) or models fol
 p.add_argument("--evader", default="suite:perimeter,hider,juker", help="as swarm-train evaluate's --evader")
 p.add_argument("--episodes", type=int, default=200)
 p.add_argument("--seed", default="0", help="evaluation seed, or several comma-separated to pool (default 0)")
+p.add_argument("--json", help="also write every seed's means of both teams and the pooled intervals here")
 args = p.parse_args()
 try:
     seeds = [int(x) for x in args.seed.split(",")]
@@ -51,10 +58,24 @@ if len(seeds) == 1:
 else:
     print(f"{args.episodes} episodes per kind and evaluation seed, seeds {args.seed} pooled "
           f"({args.episodes * len(seeds)} episodes); learned - classical, paired bootstrap 95%, then each seed's mean")
+
+
+def means(records: list) -> dict[str, float]:
+    """One team's per-episode means over ``records``."""
+    return {"min_dist": float(np.mean([r.min_dist for r in records])),
+            "tracking_rate": float(np.mean([r.tracking_rate for r in records])),
+            "coverage": float(np.mean([r.coverage for r in records])),
+            "teammate_per_episode": float(np.mean([r.teammate for r in records])),
+            "team_obstacle_per_episode": float(np.mean([r.team_obstacle for r in records])),
+            "team_contacts_per_episode": float(np.mean([r.team_contacts for r in records]))}
+
+
+doc: dict = {"episodes": args.episodes, "seeds": seeds, "evader": args.evader, "runs": {}}
 for run in args.runs:
     cfg, learned, name = load_source(run)
     for kind in expand(args.evader):
         dd, dt = [], []
+        entry = doc["runs"].setdefault(run, {})[label(kind)] = {"per_seed": {}}
         for seed in seeds:
             ours: list = []
             theirs: list = []
@@ -62,8 +83,18 @@ for run in args.runs:
                           records=(ours, theirs))
             dd.append(np.array([a.min_dist - b.min_dist for a, b in zip(ours, theirs)]))
             dt.append(np.array([a.tracking_rate - b.tracking_rate for a, b in zip(ours, theirs)]))
-        line = (f"{run:28s} {label(kind):10s} min dist {cell(*ci(np.concatenate(dd)), True):44s} "
-                f"tracking {cell(*ci(np.concatenate(dt)), False)}")
+            entry["per_seed"][str(seed)] = {"learned": means(ours), "classical": means(theirs)}
+        entry["min_dist_diff"] = dict(zip(("mean", "lo", "hi"), ci(np.concatenate(dd))))
+        entry["tracking_diff"] = dict(zip(("mean", "lo", "hi"), ci(np.concatenate(dt))))
+        md, td = entry["min_dist_diff"], entry["tracking_diff"]
+        line = (f"{run:28s} {label(kind):10s} min dist {cell(md['mean'], md['lo'], md['hi'], True):44s} "
+                f"tracking {cell(td['mean'], td['lo'], td['hi'], False)}")
         if len(seeds) > 1:
             line += ("  per seed: " + ", ".join(f"{x.mean():+.4f} / {y.mean():+.4f}" for x, y in zip(dd, dt)))
         print(line, flush=True)
+if args.json:
+    tmp = args.json + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(doc, f, indent=1)
+    os.replace(tmp, args.json)
+    print(f"wrote {args.json}")

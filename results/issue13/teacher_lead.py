@@ -6,6 +6,10 @@ team contacts per episode; the classical team itself (no layer, push 3, lead 0.6
 
     .venv/bin/python results/issue13/teacher_lead.py [CONFIG] [EPISODES] [LEAD ...]   (configs/role_based.toml, 100,
                                                                                           0.6 0.3 1.0 1.5)
+    .venv/bin/python results/issue13/teacher_lead.py ... --seeds 100,101
+
+``--seeds``: other evaluation seeds, their episodes pooled, and the scripted fleeing evaders added, four decimals:
+validation episodes to choose a teacher on, kept apart from the evaluation seeds that report results (0, 1, 2).
 """
 import sys
 
@@ -13,16 +17,26 @@ from _layered import LayeredClassical, print_suite_line
 from training.baselines import ClassicalPursuers
 from training.config import ExperimentConfig
 
-cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "configs/role_based.toml")
-eps = int(sys.argv[2]) if len(sys.argv) > 2 else 100
-leads = [float(x) for x in sys.argv[3:]] or [0.6, 0.3, 1.0, 1.5]
+args = sys.argv[1:]
+seeds, extra = (0,), {}
+if "--seeds" in args:
+    i = args.index("--seeds")
+    try:
+        seeds = tuple(int(x) for x in args[i + 1].split(","))
+    except (IndexError, ValueError):
+        sys.exit("teacher_lead.py: --seeds takes comma-separated integers, e.g. --seeds 100,101")
+    del args[i:i + 2]
+    extra = {"seeds": seeds, "scripted": True, "digits": 4}
+cfg = ExperimentConfig.from_toml(args[0] if args else "configs/role_based.toml")
+eps = int(args[1]) if len(args) > 1 else 100
+leads = [float(x) for x in args[2:]] or [0.6, 0.3, 1.0, 1.5]
 
 
-print(f"{cfg.name}: avoidance {cfg.spec.avoidance}")
-print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, eps)
+print(f"{cfg.name}: avoidance {cfg.spec.avoidance}" + (f"; evaluation seeds {seeds} pooled" if extra else ""))
+print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, eps, **extra)
 for lead in leads:
     def make(lead=lead):
         t = LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain)
         t.c.lead_time_max = lead
         return t
-    print_suite_line(cfg, f"teacher, lead {lead:g} s", make, eps)
+    print_suite_line(cfg, f"teacher, lead {lead:g} s", make, eps, **extra)
