@@ -40,6 +40,10 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "teacher_lead_time": -0.1}, "train.teacher_lead_time"),
     ({"teacher": "classical", "teacher_lead_others": float("inf")}, "train.teacher_lead_others"),
     ({"teacher": "classical", "teacher_lead_others": 9.0}, "train.teacher_lead_others"),
+    ({"teacher": "classical", "teacher_side_lead": -0.1}, "train.teacher_side_lead"),
+    ({"teacher": "classical", "teacher_side_lead": float("nan")}, "train.teacher_side_lead"),
+    ({"teacher": "classical", "teacher_side_angle": 0.0}, "train.teacher_side_angle"),
+    ({"teacher": "classical", "teacher_side_angle": 270.0}, "train.teacher_side_angle"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -186,6 +190,36 @@ def test_the_teacher_lead_times_reach_the_teacher_and_only_it(tmp_path):
     one = ClassicalPursuers()
     one.separation_gain, one.lead_time_max = trainer.tc.teacher_separation_gain, 0.3
     assert np.abs(got - TeamPolicy(one, FleeingEvaders()).act(obs, env)[:, :2]).max() > 0.05
+
+
+def test_the_teacher_side_lead_shortens_the_look_ahead_on_a_target_running_sideways(tmp_path):
+    """``train.teacher_side_lead`` / ``teacher_side_angle``: a pursuer whose target flies along the bearing from it
+    leads by ``teacher_lead_time``; one whose target flies across it (90 degrees, past the 60 of the angle) by
+    ``teacher_side_lead``; halfway in the angle's cosine, halfway between. The default is the classical team's one lead."""
+    assert ClassicalPursuers().lead_side_time is None
+    assert TrainConfig().teacher_side_lead is None
+    assert Trainer(_cfg(teacher="classical", imitation_steps=100), tmp_path / "plain").teacher.pursuer_team \
+        .lead_side_time is None
+    trainer = Trainer(_cfg(teacher="classical", imitation_steps=100, teacher_side_lead=0.2, teacher_side_angle=60.0),
+                      tmp_path / "side")
+    # a run's config.toml leaves the None out (TOML has no null) and loads back as it was
+    for run, want in (("plain", None), ("side", 0.2)):
+        assert ExperimentConfig.from_toml(tmp_path / run / "config.toml").train.teacher_side_lead == want
+    team = trainer.teacher.pursuer_team
+    assert (team.lead_side_time, team.lead_side_angle) == (0.2, 60.0)
+    spec = trainer.env.spec
+    pp = np.array([[[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]])  # three pursuers at the origin, each on its own target
+    ep = np.array([[[2.0, 0.0], [0.0, 2.0], [-2.0, 0.0]]])
+    half = np.degrees(np.arccos(1 - (1 - np.cos(np.radians(60.0))) / 2))  # halfway in cosine: lead 0.4 s
+    h = np.radians(half)
+    ev = np.array([[[1.0, 0.0], [1.0, 0.0], [-np.cos(h), np.sin(h)]]])  # along, across, and `half` degrees off
+    got = team._pursue(spec, pp, ep, ev, target=np.array([[0, 1, 2]]))
+    for i, lead in enumerate((0.6, 0.2, 0.4)):
+        want = ep[0, i] + ev[0, i] * lead
+        np.testing.assert_allclose(got[0, i], want / np.linalg.norm(want), atol=1e-9)
+    plain = ClassicalPursuers()._pursue(spec, pp, ep, ev, target=np.array([[0, 1, 2]]))
+    np.testing.assert_allclose(plain[0, 0], got[0, 0], atol=1e-12)  # along the bearing: the classical team's lead
+    assert np.abs(plain[0, 1:] - got[0, 1:]).max() > 0.05
 
 
 def test_the_paper_configs_have_no_teacher():

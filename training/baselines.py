@@ -220,6 +220,15 @@ class ClassicalPursuers:
     """None (the classical team): every pursuer leads by ``lead_time_max``. A number: only the pursuer nearest its
     target among those assigned to it leads by ``lead_time_max``; the others lead by this longer or shorter
     look-ahead [s] (``train.teacher_lead_others``: the first closes in, the rest head for where the target goes)."""
+    lead_side_time: float | None = None
+    """None (the classical team): the look-ahead does not depend on where the target flies. A number [s]: the
+    look-ahead shrinks from ``lead_time_max`` (or ``lead_time_others``) while the target flies along the bearing from
+    the pursuer to it, to this one as its velocity turns ``lead_side_angle`` off that bearing (linear in the angle's
+    cosine; beyond it, and toward the pursuer, this one): a target running sideways is led less, as it may turn back
+    (``train.teacher_side_lead``; full information only)."""
+    lead_side_angle = 60.0
+    """The angle [deg] between the target's velocity and the bearing from the pursuer at which the look-ahead reaches
+    ``lead_side_time`` (``train.teacher_side_angle``)."""
     obstacle_reach = 0.3
     """Distance from an obstacle's surface [m] where avoidance starts."""
     obstacle_repulsion = 0.5
@@ -331,6 +340,12 @@ class ClassicalPursuers:
             same = target[:, :, None] == target[:, None, :]  # [B, P, P]: pursuers sharing a target
             ahead = same & (dist[:, None, :, 0] < dist[:, :, None, 0])  # ... that are nearer it (ties: neither)
             lmax = np.where(ahead.any(-1, keepdims=True), self.lead_time_others, self.lead_time_max)
+        if self.lead_side_time is not None:
+            speed = np.linalg.norm(tv, axis=-1, keepdims=True)
+            along = (tv * (tp - pp)).sum(-1, keepdims=True) / np.maximum(dist * speed, 1e-9)  # cos of the angle
+            along = np.where(speed > 1e-6, along, 1.0)  # a target at rest: along the bearing
+            c0 = np.cos(np.radians(self.lead_side_angle))
+            lmax = lmax - (lmax - self.lead_side_time) * np.clip((1.0 - along) / (1.0 - c0), 0.0, 1.0)
         lead = np.minimum(dist / spec.pursuer.max_speed, lmax)
         hw = spec.arena.half_width
         goal = np.clip(tp + tv * lead, -hw, hw)

@@ -225,6 +225,14 @@ class TrainConfig:
     assigned to it (``ClassicalPursuers.lead_time_others``): the nearest leads by ``teacher_lead_time`` and closes
     in, the others head further ahead. Equal to ``teacher_lead_time`` (the default): one lead for all, the classical
     team's (``results/issue13/teacher_variants.py``, ``duo``)."""
+    teacher_side_lead: float | None = None
+    """None (the default, the classical team's): one look-ahead wherever the target flies. A number [s]: the teacher's
+    look-ahead on a target flying ``teacher_side_angle`` or more off the bearing from the pursuer
+    (``ClassicalPursuers.lead_side_time``), from ``teacher_lead_time`` along the bearing, linear in the angle's cosine,
+    so that a target running sideways, which may turn back, is led less (results/issue13/teacher_side_lead.py). Left
+    out of a run's config.toml while None (TOML has no null)."""
+    teacher_side_angle: float = 60.0
+    """The angle [deg] off the bearing at which the teacher's look-ahead reaches ``teacher_side_lead``."""
     imitation_steps: int = 0
     """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
     beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor
@@ -372,6 +380,13 @@ class TrainConfig:
             if not (math.isfinite(v) and 0.0 <= v <= 5.0):  # the loader has checked it is a number
                 raise SpecError(f"train.{name}: must be a look-ahead in [0, 5] s (0.6: the classical team's), got "
                                 f"{v!r}")
+        if self.teacher_side_lead is not None and not (math.isfinite(self.teacher_side_lead)
+                                                       and 0.0 <= self.teacher_side_lead <= 5.0):
+            raise SpecError(f"train.teacher_side_lead: must be a look-ahead in [0, 5] s, or left out for the classical "
+                            f"team's one lead, got {self.teacher_side_lead!r}")
+        if not (math.isfinite(self.teacher_side_angle) and 0.0 < self.teacher_side_angle <= 180.0):
+            raise SpecError(f"train.teacher_side_angle: must be an angle in (0, 180] degrees (60 by default), got "
+                            f"{self.teacher_side_angle!r}")
         if not (math.isfinite(self.teacher_obstacle_softness) and self.teacher_obstacle_softness >= 0):
             raise SpecError(f"train.teacher_obstacle_softness: must be a finite number >= 0 (0: the classical "
                             f"team's), got {self.teacher_obstacle_softness!r}")

@@ -125,8 +125,9 @@ def _toml_value(v: Any) -> str:
 
 
 def dump_toml(doc: dict[str, Any], prefix: str = "") -> str:
-    """A nested dict of scalars and lists as TOML (what ``ExperimentConfig.to_dict`` gives)."""
-    lines = [f"{k} = {_toml_value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
+    """A nested dict of scalars and lists as TOML (what ``ExperimentConfig.to_dict`` gives). A None value is left out:
+    TOML has no null, and a key left out loads as its default, which for every optional setting is None."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in doc.items() if not isinstance(v, dict) and v is not None]
     for k, v in doc.items():
         if isinstance(v, dict):
             name = f"{prefix}.{k}" if prefix else k
@@ -198,6 +199,7 @@ class Trainer:
             pursuers.lead_time_max = tc.teacher_lead_time
             if tc.teacher_lead_others != tc.teacher_lead_time:
                 pursuers.lead_time_others = tc.teacher_lead_others
+            pursuers.lead_side_time, pursuers.lead_side_angle = tc.teacher_side_lead, tc.teacher_side_angle
             self.teacher = TeamPolicy(pursuers, FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
         # the polish's own sample stream, so that the run's others are those of a run without it
