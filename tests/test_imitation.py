@@ -195,7 +195,8 @@ def test_the_teacher_lead_times_reach_the_teacher_and_only_it(tmp_path):
 def test_the_teacher_side_lead_shortens_the_look_ahead_on_a_target_running_sideways(tmp_path):
     """``train.teacher_side_lead`` / ``teacher_side_angle``: a pursuer whose target flies along the bearing from it
     leads by ``teacher_lead_time``; one whose target flies across it (90 degrees, past the 60 of the angle) by
-    ``teacher_side_lead``; halfway in the angle's cosine, halfway between. The default is the classical team's one lead."""
+    ``teacher_side_lead``; halfway in the angle's cosine, halfway between. The default is the classical team's one
+    lead."""
     assert ClassicalPursuers().lead_side_time is None
     assert TrainConfig().teacher_side_lead is None
     assert Trainer(_cfg(teacher="classical", imitation_steps=100), tmp_path / "plain").teacher.pursuer_team \
