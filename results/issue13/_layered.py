@@ -14,6 +14,11 @@ from training.evader_suite import SUITE, make_suite_evader
 from training.evaluate import evaluate, mean_of
 
 
+VALIDATION = {"seeds": (100, 101), "scripted": True, "digits": 4}
+"""``print_suite_line``'s keywords for the validation episodes that choose a teacher (evaluation seeds 100 and 101
+pooled, the scripted fleeing evaders added, four decimals), kept apart from the seeds that report results (0, 1, 2)."""
+
+
 class LayeredClassical:
     """``ClassicalPursuers`` (teammate push ``separation_gain``; None: its own) with every team action through the
     avoidance layer of ``spec``. ``tables``: a function editing the kernel's ``(params, layout)`` before each use,

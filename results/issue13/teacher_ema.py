@@ -12,12 +12,9 @@ import sys
 
 import numpy as np
 
-from _layered import LayeredClassical, print_suite_line
+from _layered import VALIDATION, LayeredClassical, print_suite_line
 from training.baselines import ClassicalPursuers
 from training.config import ExperimentConfig
-
-SEEDS = (100, 101)
-
 
 class EmaClassical(ClassicalPursuers):
     """``ClassicalPursuers`` leading on each evader's velocity averaged with time constant ``tau`` [s] (reset at
@@ -45,15 +42,14 @@ class EmaClassical(ClassicalPursuers):
 cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "../../configs/role_based.toml")
 eps = int(sys.argv[2]) if len(sys.argv) > 2 else 200
 taus = [float(x) for x in sys.argv[3:]] or [0.2, 0.4, 0.8]
-extra = {"seeds": SEEDS, "scripted": True, "digits": 4}
-print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {SEEDS} pooled")
-print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, eps, **extra)
+print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {VALIDATION['seeds']} pooled")
+print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, eps, **VALIDATION)
 print_suite_line(cfg, "teacher (velocity now)", lambda: LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain),
-                 eps, **extra)
+                 eps, **VALIDATION)
 for tau in taus:
     def make(tau=tau):
         t = LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain)
         push, t.c = t.c.separation_gain, EmaClassical(tau)
         t.c.separation_gain = push
         return t
-    print_suite_line(cfg, f"teacher, velocity averaged over {tau:g} s", make, eps, **extra)
+    print_suite_line(cfg, f"teacher, velocity averaged over {tau:g} s", make, eps, **VALIDATION)

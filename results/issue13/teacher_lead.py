@@ -13,7 +13,7 @@ validation episodes to choose a teacher on, kept apart from the evaluation seeds
 """
 import sys
 
-from _layered import LayeredClassical, print_suite_line
+from _layered import VALIDATION, LayeredClassical, print_suite_line
 from training.baselines import ClassicalPursuers
 from training.config import ExperimentConfig
 
@@ -26,7 +26,7 @@ if "--seeds" in args:
     except (IndexError, ValueError):
         sys.exit("teacher_lead.py: --seeds takes comma-separated integers, e.g. --seeds 100,101")
     del args[i:i + 2]
-    extra = {"seeds": seeds, "scripted": True, "digits": 4}
+    extra = {**VALIDATION, "seeds": seeds}
 cfg = ExperimentConfig.from_toml(args[0] if args else "configs/role_based.toml")
 eps = int(args[1]) if len(args) > 1 else 100
 leads = [float(x) for x in args[2:]] or [0.6, 0.3, 1.0, 1.5]

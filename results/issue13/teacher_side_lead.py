@@ -14,17 +14,16 @@ with the same rule, before the option existed; its actions equal the option's to
 """
 import sys
 
-from _layered import LayeredClassical, print_suite_line
+from _layered import VALIDATION, LayeredClassical, print_suite_line
 from training.baselines import ClassicalPursuers
 from training.config import ExperimentConfig
 
 
 cfg = ExperimentConfig.from_toml(sys.argv[1])
-extra = {"seeds": (100, 101), "scripted": True, "digits": 4}
-print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {extra['seeds']} pooled")
-print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, 200, **extra)
+print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {VALIDATION['seeds']} pooled")
+print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, 200, **VALIDATION)
 print_suite_line(cfg, "teacher (lead 0.6 s)", lambda: LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain),
-                 200, **extra)
+                 200, **VALIDATION)
 for arg in sys.argv[2:]:
     side, angle = (float(x) for x in arg.split("@"))
 
@@ -33,4 +32,4 @@ for arg in sys.argv[2:]:
         t.c.lead_side_time, t.c.lead_side_angle = side, angle
         return t
     print_suite_line(cfg, f"teacher, lead 0.6 s along the line of sight, {side:g} s from {angle:g} deg off it", make,
-                     200, **extra)
+                     200, **VALIDATION)
