@@ -44,6 +44,9 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "teacher_side_lead": float("nan")}, "train.teacher_side_lead"),
     ({"teacher": "classical", "teacher_side_angle": 0.0}, "train.teacher_side_angle"),
     ({"teacher": "classical", "teacher_side_angle": 270.0}, "train.teacher_side_angle"),
+    ({"teacher": "classical", "teacher_side_wall": 0.5}, "train.teacher_side_wall"),
+    ({"teacher": "classical", "teacher_side_lead": 0.4, "teacher_side_wall": -0.5}, "train.teacher_side_wall"),
+    ({"teacher": "classical", "teacher_side_lead": 0.4, "teacher_side_wall": float("inf")}, "train.teacher_side_wall"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -221,6 +224,34 @@ def test_the_teacher_side_lead_shortens_the_look_ahead_on_a_target_running_sidew
     plain = ClassicalPursuers()._pursue(spec, pp, ep, ev, target=np.array([[0, 1, 2]]))
     np.testing.assert_allclose(plain[0, 0], got[0, 0], atol=1e-12)  # along the bearing: the classical team's lead
     assert np.abs(plain[0, 1:] - got[0, 1:]).max() > 0.05
+
+
+def test_the_teacher_side_wall_keeps_the_full_lead_on_a_target_near_a_wall(tmp_path):
+    """``train.teacher_side_wall``: the side lead applies to a target at least ``teacher_side_wall`` + 0.3 m from
+    every wall, not to one within ``teacher_side_wall`` of a wall, and halfway in between it is half applied; along
+    the bearing nothing changes. Off by default (the side lead everywhere)."""
+    assert ClassicalPursuers().lead_side_wall is None and TrainConfig().teacher_side_wall is None
+    trainer = Trainer(_cfg(teacher="classical", imitation_steps=100, teacher_side_lead=0.2, teacher_side_angle=60.0,
+                           teacher_side_wall=0.5), tmp_path / "wall")
+    assert ExperimentConfig.from_toml(tmp_path / "wall" / "config.toml").train.teacher_side_wall == 0.5
+    team = trainer.teacher.pursuer_team
+    assert team.lead_side_wall == 0.5 and team.lead_side_fade == 0.3
+    spec = trainer.env.spec
+    hw = spec.arena.half_width
+    # four targets running across the line of sight (full side lead without the wall rule): in the open, 0.4 m from
+    # the right wall, 0.65 m from it (halfway through the fade), and one running along the bearing near the wall
+    ep = np.array([[[0.0, 1.0], [hw - 0.4, 1.0], [hw - 0.65, -1.0], [hw - 0.2, -2.0]]])
+    pp = ep - np.array([[[0.0, 1.0], [0.0, 1.0], [0.0, 1.0], [0.0, 1.0]]])
+    ev = np.array([[[1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [0.0, 1.0]]])
+    target = np.array([[0, 1, 2, 3]])
+    got = team._pursue(spec, pp, ep, ev, target=target)
+    for i, lead in enumerate((0.2, 0.6, 0.4, 0.6)):
+        want = np.clip(ep[0, i] + ev[0, i] * lead, -hw, hw) - pp[0, i]
+        np.testing.assert_allclose(got[0, i], want / np.linalg.norm(want), atol=1e-9)
+    team.lead_side_wall = None  # the side lead everywhere: the target near the wall is led 0.2 s too
+    everywhere = team._pursue(spec, pp, ep, ev, target=target)
+    np.testing.assert_allclose(everywhere[0, [0, 3]], got[0, [0, 3]], atol=1e-12)
+    assert np.abs(everywhere[0, 1] - got[0, 1]).max() > 0.05
 
 
 def test_the_paper_configs_have_no_teacher():

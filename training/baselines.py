@@ -229,6 +229,12 @@ class ClassicalPursuers:
     lead_side_angle = 60.0
     """The angle [deg] between the target's velocity and the bearing from the pursuer at which the look-ahead reaches
     ``lead_side_time`` (``train.teacher_side_angle``)."""
+    lead_side_wall: float | None = None
+    """None: the side lead applies wherever the target is. A number [m]: only to a target at least this far plus
+    ``lead_side_fade`` from every wall, fading (linear) to none at this distance, so that a target whose path a wall
+    bends is led by ``lead_time_max`` (``train.teacher_side_wall``)."""
+    lead_side_fade = 0.3
+    """The band [m] over which ``lead_side_wall`` fades the side lead out toward the walls."""
     obstacle_reach = 0.3
     """Distance from an obstacle's surface [m] where avoidance starts."""
     obstacle_repulsion = 0.5
@@ -345,7 +351,11 @@ class ClassicalPursuers:
             along = (tv * (tp - pp)).sum(-1, keepdims=True) / np.maximum(dist * speed, 1e-9)  # cos of the angle
             along = np.where(speed > 1e-6, along, 1.0)  # a target at rest: along the bearing
             c0 = np.cos(np.radians(self.lead_side_angle))
-            lmax = lmax - (lmax - self.lead_side_time) * np.clip((1.0 - along) / (1.0 - c0), 0.0, 1.0)
+            side = np.clip((1.0 - along) / (1.0 - c0), 0.0, 1.0)
+            if self.lead_side_wall is not None:
+                to_wall = (spec.arena.half_width - np.abs(tp)).min(-1, keepdims=True)
+                side = side * np.clip((to_wall - self.lead_side_wall) / self.lead_side_fade, 0.0, 1.0)
+            lmax = lmax - (lmax - self.lead_side_time) * side
         lead = np.minimum(dist / spec.pursuer.max_speed, lmax)
         hw = spec.arena.half_width
         goal = np.clip(tp + tv * lead, -hw, hw)

@@ -233,6 +233,11 @@ class TrainConfig:
     out of a run's config.toml while None (TOML has no null)."""
     teacher_side_angle: float = 60.0
     """The angle [deg] off the bearing at which the teacher's look-ahead reaches ``teacher_side_lead``."""
+    teacher_side_wall: float | None = None
+    """None (the default): ``teacher_side_lead`` applies wherever the target is. A number [m]: only to a target at least
+    this far plus 0.3 m from every wall, fading to none at this distance (``ClassicalPursuers.lead_side_wall``), so
+    that a target running along a wall is led by ``teacher_lead_time`` (results/issue13/teacher_side_wall.py). Needs
+    ``teacher_side_lead``."""
     imitation_steps: int = 0
     """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
     beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor
@@ -384,6 +389,13 @@ class TrainConfig:
                                                        and 0.0 <= self.teacher_side_lead <= 5.0):
             raise SpecError(f"train.teacher_side_lead: must be a look-ahead in [0, 5] s, or left out for the classical "
                             f"team's one lead, got {self.teacher_side_lead!r}")
+        if self.teacher_side_wall is not None:
+            if self.teacher_side_lead is None:
+                raise SpecError("train.teacher_side_wall: fades out train.teacher_side_lead near the walls; set "
+                                "teacher_side_lead too, or leave teacher_side_wall out")
+            if not (math.isfinite(self.teacher_side_wall) and 0.0 <= self.teacher_side_wall <= 10.0):
+                raise SpecError(f"train.teacher_side_wall: must be a distance from the walls in [0, 10] m, or left out "
+                                f"for the side lead everywhere, got {self.teacher_side_wall!r}")
         if not (math.isfinite(self.teacher_side_angle) and 0.0 < self.teacher_side_angle <= 180.0):
             raise SpecError(f"train.teacher_side_angle: must be an angle in (0, 180] degrees (60 by default), got "
                             f"{self.teacher_side_angle!r}")
