@@ -10,7 +10,7 @@ import torch
 
 from runtime.avoidance import avoid_agents
 from runtime.spec import SpecError
-from training.config import ExperimentConfig
+from training.config import ExperimentConfig, TrainConfig
 from training.maddpg import MADDPG
 from training.rolecritic import RoleCriticMADDPG, make_learner
 from training.train import Trainer
@@ -343,3 +343,48 @@ def test_es_role_fitness_moves_each_role_by_its_own_terms_only(monkeypatch):
     for bad in ({"es_role_fitness": "split", "es_coverage_weight": 0.0}, {"es_role_fitness": "roles"}):
         with pytest.raises(SpecError, match=r"train\.es_role_fitness"):
             _cfg(spec, share_params=True, es_iterations=1, **bad)
+
+
+def test_es_pursuer_iterations_freezes_the_pursuers_after_k_iterations(monkeypatch):
+    """``train.es_pursuer_iterations = k``: the pursuers' weights move in ES's first k iterations only; after them
+    every member flies the pursuers' centre and only the scouts' weights step. The first k iterations are those of
+    a run without the option, to the bit. Off by default; a k outside [0, es_iterations] names the field."""
+    from runtime.metrics import EpisodeRecord
+    from training.es import TeamES
+    spec = {"team": {"n_pursuers": 2, "n_scouts": 1, "n_evaders": 1}}
+    assert TrainConfig().es_pursuer_iterations is None
+
+    def run(k):
+        cfg = _cfg(spec, share_params=True, es_iterations=3, es_population=4, es_episodes=1,
+                   es_coverage_weight=1.0, es_role_fitness="pursuers", es_pursuer_iterations=k)
+        team = TeamES(cfg.spec, cfg.rewards, MADDPG(cfg.spec, cfg.train).to_actors(), cfg.train, seed=0)
+        sp = team.sizes[0]
+        flown = []
+        w = np.random.default_rng(5).standard_normal(team.theta.size)
+
+        def fake(thetas, episodes, seed):
+            flown.append(thetas.copy())
+            return [[EpisodeRecord(min_dist=0.5 - 1e3 * (x - team.theta) @ w, avg_dist=1.0, max_dist=2.0,
+                                   tracking_rate=0.5, coverage=0.5 + 1e3 * (x - team.theta) @ w,
+                                   coverage_instant=0.1, collisions=0, captures=0, steps=100)] for x in thetas]
+
+        monkeypatch.setattr(team, "rollout", fake)
+        thetas = [team.theta.copy()]
+        for _ in range(3):
+            team.step()
+            thetas.append(team.theta.copy())
+        return sp, thetas, flown
+
+    sp, free, _ = run(None)
+    _, froz, flown = run(1)
+    np.testing.assert_array_equal(free[1], froz[1])  # the first iteration: as without the option
+    assert np.abs(froz[1][:sp] - froz[0][:sp]).max() > 0
+    for i in (2, 3):  # then the pursuers stand still, every member flies their centre, the scouts move on
+        np.testing.assert_array_equal(froz[i][:sp], froz[1][:sp])
+        assert np.abs(froz[i][sp:] - froz[i - 1][sp:]).max() > 0
+        members = flown[i - 1][:, :sp]
+        np.testing.assert_array_equal(members, np.broadcast_to(froz[i - 1][:sp], members.shape))
+    assert np.abs(free[3][:sp] - free[1][:sp]).max() > 0  # without it they go on
+    for bad in (-1, 4):
+        with pytest.raises(SpecError, match=r"train\.es_pursuer_iterations"):
+            _cfg(spec, share_params=True, es_iterations=3, es_pursuer_iterations=bad)

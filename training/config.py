@@ -329,6 +329,12 @@ class TrainConfig:
     empty: all of them."""
     es_checkpoint_every: int = 5
     """ES iterations between two saves of the ES state and the actors."""
+    es_pursuer_iterations: int | None = None
+    """None (the default): every role's weights ascend in every ES iteration. A number k: the pursuers' only in the
+    first k; after them the pursuers' actor is frozen (neither perturbed nor stepped) and only the other roles'
+    weights go on for the rest of ``es_iterations`` (role_based: the pursuit that ES's first iterations reach, the
+    scouts' coverage that the whole run reaches; results/README.md, twenty-ninth attempt). Left out of a run's
+    config.toml while None."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "n_envs", "batch_size", "buffer_size", "update_every", "log_every",
@@ -414,6 +420,10 @@ class TrainConfig:
                 raise SpecError(f"train.{name}: must be >= 0, got {getattr(self, name)!r}")
         if self.es_iterations < 0:
             raise SpecError(f"train.es_iterations: must be >= 0, got {self.es_iterations!r}")
+        if self.es_pursuer_iterations is not None and not 0 <= self.es_pursuer_iterations <= self.es_iterations:
+            raise SpecError(f"train.es_pursuer_iterations: must be in [0, train.es_iterations = {self.es_iterations}] "
+                            f"(the ES iterations in which the pursuers' weights move), or left out for all of them, "
+                            f"got {self.es_pursuer_iterations!r}")
         for name in ("es_population", "es_episodes", "es_checkpoint_every"):
             if getattr(self, name) < 1:
                 raise SpecError(f"train.{name}: must be >= 1, got {getattr(self, name)!r}")

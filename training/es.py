@@ -228,6 +228,8 @@ class TeamES:
         tc = self.tc
         p, sig = tc.es_population, tc.es_sigma
         eps = self.rng.standard_normal((p, self.theta.size))
+        frozen = self._frozen()
+        eps[:, frozen] = 0.0  # a frozen role flies its centre in every member
         # the centre flies too (last member): its figures are the ones logged, on the population's episodes
         thetas = np.concatenate([self.theta + sig * eps, self.theta - sig * eps, self.theta[None]])
         seed = int(self.rng.integers(2 ** 31))
@@ -249,6 +251,7 @@ class TeamES:
         mh = self._m / (1 - b1 ** self.iteration)
         vh = self._v / (1 - b2 ** self.iteration)
         stepv = tc.es_lr * mh / (np.sqrt(vh) + 1e-8)
+        stepv[frozen] = 0.0
         self.theta = self.theta + stepv
         recs = centre
         return {"iteration": self.iteration, "fitness": self.fitness(centre), "fitness_best": float(fit.max()),
@@ -257,6 +260,19 @@ class TeamES:
                 "coverage": float(np.mean([r.coverage for r in recs])),
                 "team_contacts": float(np.mean([r.team_contacts for r in recs])), "sigma": sig,
                 "step_norm": float(np.linalg.norm(stepv))}
+
+    def _frozen(self) -> np.ndarray:
+        """Mask over ``theta`` of the weights this iteration leaves alone: the pursuers' once ``es_pursuer_iterations``
+        iterations have moved them (``train.es_pursuer_iterations``)."""
+        mask = np.zeros(self.theta.size, dtype=bool)
+        k = getattr(self.tc, "es_pursuer_iterations", None)
+        if k is not None and self.iteration >= k:
+            start = 0
+            for r, n in zip(self.roles, self.sizes):
+                if r.role is Role.PURSUER:
+                    mask[start:start + n] = True
+                start += n
+        return mask
 
     @staticmethod
     def _ascent(f: np.ndarray, eps: np.ndarray, sig: float) -> np.ndarray:
