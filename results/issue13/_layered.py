@@ -62,3 +62,13 @@ def print_suite_line(cfg: Any, label: str, make: Callable[[], Any], episodes: in
           f"tc {m['team_contacts_per_episode']:.2f}   "
           + "  ".join(f"{k} {v['mean_min_dist']:.{digits}f}/{v['tracking_rate']:.{digits}f}" for k, v in per.items()),
           flush=True)
+
+
+def print_validation_bars(cfg: Any, teacher_label: str = "teacher (lead 0.6 s)", episodes: int = 200) -> None:
+    """The first lines of every teacher probe on the validation episodes (``VALIDATION``): the config's layer, then
+    the classical team (the bar) and the config's teacher (push ``train.teacher_separation_gain``, flown through the
+    layer) under ``teacher_label``."""
+    print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {VALIDATION['seeds']} pooled")
+    print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, episodes, **VALIDATION)
+    print_suite_line(cfg, teacher_label, lambda: LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain),
+                     episodes, **VALIDATION)

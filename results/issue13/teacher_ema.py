@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 
-from _layered import VALIDATION, LayeredClassical, print_suite_line
+from _layered import VALIDATION, LayeredClassical, print_suite_line, print_validation_bars
 from training.baselines import ClassicalPursuers
 from training.config import ExperimentConfig
 
@@ -42,10 +42,7 @@ class EmaClassical(ClassicalPursuers):
 cfg = ExperimentConfig.from_toml(sys.argv[1] if len(sys.argv) > 1 else "../../configs/role_based.toml")
 eps = int(sys.argv[2]) if len(sys.argv) > 2 else 200
 taus = [float(x) for x in sys.argv[3:]] or [0.2, 0.4, 0.8]
-print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {VALIDATION['seeds']} pooled")
-print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, eps, **VALIDATION)
-print_suite_line(cfg, "teacher (velocity now)", lambda: LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain),
-                 eps, **VALIDATION)
+print_validation_bars(cfg, "teacher (velocity now)", eps)
 for tau in taus:
     def make(tau=tau):
         t = LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain)

@@ -15,16 +15,12 @@ as the bar. See results/README.md, twenty-ninth attempt.
 """
 import sys
 
-from _layered import VALIDATION, LayeredClassical, print_suite_line
-from training.baselines import ClassicalPursuers
+from _layered import VALIDATION, LayeredClassical, print_suite_line, print_validation_bars
 from training.config import ExperimentConfig
 
 
 cfg = ExperimentConfig.from_toml(sys.argv[1])
-print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {VALIDATION['seeds']} pooled")
-print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, 200, **VALIDATION)
-print_suite_line(cfg, "teacher (lead 0.6 s)", lambda: LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain),
-                 200, **VALIDATION)
+print_validation_bars(cfg)
 for arg in sys.argv[2:]:
     side, angle, wall = (float(x) for x in arg.split("@"))
 

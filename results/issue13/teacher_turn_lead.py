@@ -16,7 +16,7 @@ import sys
 
 import numpy as np
 
-from _layered import VALIDATION, LayeredClassical, print_suite_line
+from _layered import VALIDATION, LayeredClassical, print_suite_line, print_validation_bars
 from training.baselines import ClassicalPursuers, assign_targets
 from training.config import ExperimentConfig
 
@@ -59,10 +59,7 @@ class TurnLead(ClassicalPursuers):
 
 
 cfg = ExperimentConfig.from_toml(sys.argv[1])
-print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {VALIDATION['seeds']} pooled")
-print_suite_line(cfg, "classical team (lead 0.6 s, push 3, no layer)", ClassicalPursuers, 200, **VALIDATION)
-print_suite_line(cfg, "teacher (lead 0.6 s)", lambda: LayeredClassical(cfg.spec, cfg.train.teacher_separation_gain),
-                 200, **VALIDATION)
+print_validation_bars(cfg)
 for arg in sys.argv[2:]:
     short, rate, tau = (float(x) for x in arg.split("@"))
 
