@@ -235,9 +235,9 @@ class TrainConfig:
     """The angle [deg] off the bearing at which the teacher's look-ahead reaches ``teacher_side_lead``."""
     teacher_side_wall: float | None = None
     """None (the default): ``teacher_side_lead`` applies wherever the target is. A number [m]: only to a target at least
-    this far plus 0.3 m from every wall, fading to none at this distance (``ClassicalPursuers.lead_side_wall``), so
-    that a target running along a wall is led by ``teacher_lead_time`` (results/issue13/teacher_side_wall.py). Needs
-    ``teacher_side_lead``."""
+    this far plus ``ClassicalPursuers.lead_side_fade`` from every wall, fading to none at this distance
+    (``ClassicalPursuers.lead_side_wall``), so that a target running along a wall is led by ``teacher_lead_time``
+    (results/issue13/teacher_side_wall.py). Needs ``teacher_side_lead``."""
     imitation_steps: int = 0
     """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
     beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor

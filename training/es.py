@@ -265,7 +265,7 @@ class TeamES:
         """Mask over ``theta`` of the weights this iteration leaves alone: the pursuers' once ``es_pursuer_iterations``
         iterations have moved them (``train.es_pursuer_iterations``)."""
         mask = np.zeros(self.theta.size, dtype=bool)
-        k = getattr(self.tc, "es_pursuer_iterations", None)
+        k = self.tc.es_pursuer_iterations
         if k is not None and self.iteration >= k:
             start = 0
             for r, n in zip(self.roles, self.sizes):

@@ -21,6 +21,7 @@ import os
 
 import numpy as np
 
+from runtime.metrics import summarize
 from training.evader_spec import expand, label
 from training.learned_eval import evaluate_kind, load_source
 
@@ -60,14 +61,17 @@ else:
           f"({args.episodes * len(seeds)} episodes); learned - classical, paired bootstrap 95%, then each seed's mean")
 
 
+JSON_KEYS = {"min_dist": "mean_min_dist", "tracking_rate": "tracking_rate", "coverage": "coverage",
+             "teammate_per_episode": "teammate_contacts_per_episode",
+             "team_obstacle_per_episode": "team_obstacle_contacts_per_episode",
+             "team_contacts_per_episode": "team_contacts_per_episode"}
+"""This file's JSON keys and the ``runtime.metrics.summarize`` keys they hold."""
+
+
 def means(records: list) -> dict[str, float]:
-    """One team's per-episode means over ``records``."""
-    return {"min_dist": float(np.mean([r.min_dist for r in records])),
-            "tracking_rate": float(np.mean([r.tracking_rate for r in records])),
-            "coverage": float(np.mean([r.coverage for r in records])),
-            "teammate_per_episode": float(np.mean([r.teammate for r in records])),
-            "team_obstacle_per_episode": float(np.mean([r.team_obstacle for r in records])),
-            "team_contacts_per_episode": float(np.mean([r.team_contacts for r in records]))}
+    """One team's per-episode means over ``records`` (``summarize``), under this file's JSON keys."""
+    s = summarize(records)
+    return {ours: s[theirs] for ours, theirs in JSON_KEYS.items()}
 
 
 doc: dict = {"episodes": args.episodes, "seeds": seeds, "evader": args.evader, "runs": {}}

@@ -41,11 +41,9 @@ class TurnLead(ClassicalPursuers):
         fresh = (s.step == 0)[:, None]
         self._rate = np.where(fresh, 0.0, (1 - a) * self._rate + a * turn)
         self._prev = v.copy()
-        full = self.lead_time_max_default
+        full = self.lead_time_max  # the class's (``_pursue`` sets its per-target lead on the instance only for a call)
         self._lead = full - (full - self.short) * np.clip(self._rate / self.rate_ref, 0.0, 1.0)  # [B, E]
         return super().act(obs, env)
-
-    lead_time_max_default = ClassicalPursuers.lead_time_max
 
     def _pursue(self, spec, pp, ep, ev, target=None):
         if target is None:
