@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from runtime.spec import SpecError
+from runtime.spec import Role, SpecError
 from training.baselines import ClassicalPursuers, FleeingEvaders, TeamPolicy
 from training.config import ExperimentConfig, TrainConfig
 from training.env import PursuitEnv
@@ -47,6 +47,10 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "teacher_side_wall": 0.5}, "train.teacher_side_wall"),
     ({"teacher": "classical", "teacher_side_lead": 0.4, "teacher_side_wall": -0.5}, "train.teacher_side_wall"),
     ({"teacher": "classical", "teacher_side_lead": 0.4, "teacher_side_wall": float("inf")}, "train.teacher_side_wall"),
+    ({"teacher": "classical", "teacher_scout_sweep": -0.1}, "train.teacher_scout_sweep"),
+    ({"teacher": "classical", "teacher_scout_sweep": float("nan")}, "train.teacher_scout_sweep"),
+    ({"teacher": "classical", "teacher_scout_sweep": 3.0}, "train.teacher_scout_sweep"),
+    ({"teacher": "classical", "teacher_scout_sweep_mode": "spiral"}, "train.teacher_scout_sweep_mode"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -252,6 +256,41 @@ def test_the_teacher_side_wall_keeps_the_full_lead_on_a_target_near_a_wall(tmp_p
     everywhere = team._pursue(spec, pp, ep, ev, target=target)
     np.testing.assert_allclose(everywhere[0, [0, 3]], got[0, [0, 3]], atol=1e-12)
     assert np.abs(everywhere[0, 1] - got[0, 1]).max() > 0.05
+
+
+def test_the_teacher_scout_sweep_keeps_the_scouts_moving_and_leaves_the_pursuers_alone(tmp_path):
+    """``train.teacher_scout_sweep``: the teacher's scouts add a wish of that size to Lloyd's step, along their own
+    velocity ("heading", none at rest) or counter-clockwise about the arena's centre ("orbit"); the pursuers' actions
+    do not change. Off by default (Lloyd's step alone, the classical team's)."""
+    assert ClassicalPursuers().scout_sweep is None and TrainConfig().teacher_scout_sweep is None
+    trainer = Trainer(_cfg(teacher="classical", imitation_steps=100, teacher_scout_sweep=0.5), tmp_path / "sweep")
+    tc = ExperimentConfig.from_toml(tmp_path / "sweep" / "config.toml").train
+    assert (tc.teacher_scout_sweep, tc.teacher_scout_sweep_mode) == (0.5, "heading")
+    team = trainer.teacher.pursuer_team
+    assert (team.scout_sweep, team.scout_sweep_mode) == (0.5, "heading")
+    pos = np.array([[[1.0, 0.0], [0.0, -2.0], [0.1, 0.0]]])
+    vel = np.array([[[0.0, 0.3], [0.0, 0.0], [-0.6, 0.8]]])
+    np.testing.assert_allclose(team._sweep(pos, vel), [[[0.0, 0.5], [0.0, 0.0], [-0.3, 0.4]]], atol=1e-12)
+    team.scout_sweep_mode = "orbit"  # tangent, counter-clockwise, faded in over the 0.5 m around the centre
+    np.testing.assert_allclose(team._sweep(pos, vel), [[[0.0, 0.5], [0.5, 0.0], [0.0, 0.1]]], atol=1e-12)
+    team.scout_sweep_mode = "heading"
+    env = trainer.env
+    obs = env.reset()
+    for _ in range(5):  # under way, so that the scouts fly at a velocity
+        obs, *_ = env.step(ClassicalPursuers().act(obs, env))
+    swept = team.act(obs, env)
+    team.scout_sweep = None
+    lloyd = team.act(obs, env)
+    p, sc = list(env.spec.team.indices(Role.PURSUER)), list(env.spec.team.indices(Role.SCOUT))
+    np.testing.assert_array_equal(swept[:, p], lloyd[:, p])  # the pursuers: unchanged
+    assert np.abs(swept[:, sc] - lloyd[:, sc]).max() > 0.05
+    # moving with the sweep: the scouts' actions lean along their velocity more than Lloyd's step alone does
+    v = env.state.vel[:, sc]
+    moving = np.linalg.norm(v, axis=-1) > 0.1
+
+    def along(a: np.ndarray) -> np.ndarray:
+        return ((a[:, sc] * v).sum(-1) / np.maximum(np.linalg.norm(v, axis=-1), 1e-9))[moving]
+    assert moving.any() and along(swept).mean() > along(lloyd).mean()
 
 
 def test_the_paper_configs_have_no_teacher():

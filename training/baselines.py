@@ -248,6 +248,13 @@ class ClassicalPursuers:
     """Teammate push at zero distance [normalized action]."""
     lloyd_gain = 2.0
     """Scouts' commanded speed per metre to their cell's centroid [1/s, normalized action]."""
+    scout_sweep: float | None = None
+    """None (the classical team): the scouts take Lloyd's step alone and settle at their cells' centroids. A number
+    [normalized action]: added to Lloyd's step, a wish of this size that keeps the scouts moving, so that the team
+    sees more of the arena over an episode (``scout_sweep_mode``; ``train.teacher_scout_sweep``)."""
+    scout_sweep_mode = "heading"
+    """What ``scout_sweep`` adds: "heading": along the scout's own velocity (none at rest); "orbit": counter-clockwise
+    about the arena's centre (tangent to the circle through the scout, faded in over the 0.5 m around the centre)."""
     obstacle_side_softness = 0.0
     """``avoid_obstacles``' ``side_softness`` for the team: 0 (the classical team): slide to the side the wish leans
     to, flipping side when it points straight at the obstacle's centre; > 0: fade the slide out there instead
@@ -292,13 +299,26 @@ class ClassicalPursuers:
                 raise ValueError(f"ClassicalPursuers.assignment: {self.assignment!r} is not 'central' or 'local'")
             wish[:, p] = self._pursue(spec, s.pos[:, p], s.pos[:, nt:], s.vel[:, nt:], target)
         if sc.size:
-            wish[:, sc] = _clip_norm(self.lloyd_gain * (centroids[:, sc] - s.pos[:, sc]))
+            wish[:, sc] = _clip_norm(self.lloyd_gain * (centroids[:, sc] - s.pos[:, sc]) + self._sweep(s.pos[:, sc],
+                                                                                                   s.vel[:, sc]))
         v = wish + separation(team_pos, team_pos, self.separation_reach, self.separation_gain)
         v = avoid_obstacles(team_pos, v, radius[:nt], s.obstacle_pos, s.obstacle_radius,
                             self.obstacle_reach, self.obstacle_repulsion, self.obstacle_side_softness)
         v = wall_field(team_pos, v, radius[:nt], hw, self.wall_reach_for(spec), 0.0)
         out[:, :nt] = _clip_norm(v)
         return out
+
+    def _sweep(self, pos: np.ndarray, vel: np.ndarray) -> np.ndarray | float:
+        """``scout_sweep``'s wish ``[B, S, 2]`` for scouts at ``pos`` flying at ``vel`` (0 when it is None)."""
+        if self.scout_sweep is None:
+            return 0.0
+        if self.scout_sweep_mode == "heading":
+            return self.scout_sweep * _unit(vel)
+        if self.scout_sweep_mode == "orbit":
+            r = np.linalg.norm(pos, axis=-1, keepdims=True)
+            tangent = np.stack([-pos[..., 1], pos[..., 0]], -1) / np.maximum(r, 1e-9)
+            return self.scout_sweep * np.clip(r / 0.5, 0.0, 1.0) * tangent
+        raise ValueError(f"ClassicalPursuers.scout_sweep_mode: {self.scout_sweep_mode!r} is not 'heading' or 'orbit'")
 
     def wall_reach_for(self, spec: SwarmSpec) -> float:
         """``wall_reach`` [m], or when it is None one drone diameter of ``spec``'s pursuer team."""

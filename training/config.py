@@ -238,6 +238,14 @@ class TrainConfig:
     this far plus ``ClassicalPursuers.lead_side_fade`` from every wall, fading to none at this distance
     (``ClassicalPursuers.lead_side_wall``), so that a target running along a wall is led by ``teacher_lead_time``
     (results/issue13/teacher_side_wall.py). Needs ``teacher_side_lead``."""
+    teacher_scout_sweep: float | None = None
+    """None (the default, the classical team's): the teacher's scouts take Lloyd's step alone and settle at their
+    cells' centroids. A number [normalized action]: added to their Lloyd's step, a wish of this size that keeps them
+    moving (``ClassicalPursuers.scout_sweep``), so that the team sees more of the arena over an episode
+    (results/issue13/teacher_scout_sweep.py). Left out of a run's config.toml while None."""
+    teacher_scout_sweep_mode: str = "heading"
+    """What ``teacher_scout_sweep`` adds (``ClassicalPursuers.scout_sweep_mode``): "heading": along the scout's own
+    velocity; "orbit": counter-clockwise about the arena's centre."""
     imitation_steps: int = 0
     """The first env steps learn by DAgger (Ross et al. 2011): each env acts with the teacher with probability
     beta (1 at the start, 0 at the end, linear) and with the learners' noisy actions otherwise, and the actor
@@ -402,6 +410,13 @@ class TrainConfig:
             if not (math.isfinite(self.teacher_side_wall) and 0.0 <= self.teacher_side_wall <= 10.0):
                 raise SpecError(f"train.teacher_side_wall: must be a distance from the walls in [0, 10] m, or left out "
                                 f"for the side lead everywhere, got {self.teacher_side_wall!r}")
+        if self.teacher_scout_sweep is not None and not (math.isfinite(self.teacher_scout_sweep)
+                                                         and 0.0 <= self.teacher_scout_sweep <= 2.0):
+            raise SpecError(f"train.teacher_scout_sweep: must be a wish in [0, 2] (normalized action), or left out for "
+                            f"Lloyd's step alone, got {self.teacher_scout_sweep!r}")
+        if self.teacher_scout_sweep_mode not in ("heading", "orbit"):
+            raise SpecError(f"train.teacher_scout_sweep_mode: {self.teacher_scout_sweep_mode!r} is not one of "
+                            f"'heading', 'orbit'")
         if not (math.isfinite(self.teacher_side_angle) and 0.0 < self.teacher_side_angle <= 180.0):
             raise SpecError(f"train.teacher_side_angle: must be an angle in (0, 180] degrees (60 by default), got "
                             f"{self.teacher_side_angle!r}")

@@ -44,12 +44,12 @@ class LayeredClassical:
 
 
 def print_suite_line(cfg: Any, label: str, make: Callable[[], Any], episodes: int, seeds: Sequence[int] = (0,),
-                     scripted: bool = False, digits: int = 3) -> None:
+                     scripted: bool = False, digits: int = 3, coverage: bool = False) -> None:
     """Fly a team from ``make()`` (a new one per kind and seed) against every held-out suite kind, ``episodes``
     episodes each per evaluation seed in ``seeds`` (default: seed 0 alone; several: their episodes pooled, each seed's
     scripted kinds drawing their parameters from it, as ``swarm-train evaluate --seed S`` does), and print one line:
     the suite mean and each kind's min distance [m] / tracking, to ``digits`` decimals; ``scripted``: the scripted
-    fleeing evaders last."""
+    fleeing evaders last; ``coverage``: each kind's coverage after its tracking, and the mean over the kinds."""
     kinds = list(SUITE) + (["scripted"] if scripted else [])
 
     def evader(kind: str, seed: int) -> Any:
@@ -58,10 +58,14 @@ def print_suite_line(cfg: Any, label: str, make: Callable[[], Any], episodes: in
     per = {kind: mean_of([evaluate(cfg, TeamPolicy(make(), evader(kind, seed)), episodes, seed=seed, progress=False)
                           for seed in seeds]) for kind in kinds}
     m = mean_of([per[kind] for kind in SUITE])
+
+    def cov(v: dict) -> str:
+        return f"/{v['coverage']:.{digits}f}" if coverage else ""
     print(f"{label}: suite {m['mean_min_dist']:.{digits}f}/{m['tracking_rate']:.{digits}f} "
-          f"tc {m['team_contacts_per_episode']:.2f}   "
-          + "  ".join(f"{k} {v['mean_min_dist']:.{digits}f}/{v['tracking_rate']:.{digits}f}" for k, v in per.items()),
-          flush=True)
+          f"tc {m['team_contacts_per_episode']:.2f}"
+          + (f" coverage {mean_of(list(per.values()))['coverage']:.{digits}f}" if coverage else "") + "   "
+          + "  ".join(f"{k} {v['mean_min_dist']:.{digits}f}/{v['tracking_rate']:.{digits}f}{cov(v)}"
+                      for k, v in per.items()), flush=True)
 
 
 def print_validation_bars(cfg: Any, teacher_label: str = "teacher (lead 0.6 s)", episodes: int = 200) -> None:
