@@ -51,6 +51,9 @@ def _cfg(**train) -> ExperimentConfig:
     ({"teacher": "classical", "teacher_scout_sweep": float("nan")}, "train.teacher_scout_sweep"),
     ({"teacher": "classical", "teacher_scout_sweep": 3.0}, "train.teacher_scout_sweep"),
     ({"teacher": "classical", "teacher_scout_sweep_mode": "spiral"}, "train.teacher_scout_sweep_mode"),
+    ({"teacher": "classical", "teacher_scout_sweep_clear": 1.0}, "train.teacher_scout_sweep_clear"),
+    ({"teacher": "classical", "teacher_scout_sweep": 0.5, "teacher_scout_sweep_clear": -1.0},
+     "train.teacher_scout_sweep_clear"),
 ])
 def test_bad_teacher_settings_name_the_field(train, field):
     with pytest.raises(SpecError, match=field.replace("(", r"\(").replace(".", r"\.")):
@@ -270,10 +273,25 @@ def test_the_teacher_scout_sweep_keeps_the_scouts_moving_and_leaves_the_pursuers
     assert (team.scout_sweep, team.scout_sweep_mode) == (0.5, "heading")
     pos = np.array([[[1.0, 0.0], [0.0, -2.0], [0.1, 0.0]]])
     vel = np.array([[[0.0, 0.3], [0.0, 0.0], [-0.6, 0.8]]])
-    np.testing.assert_allclose(team._sweep(pos, vel), [[[0.0, 0.5], [0.0, 0.0], [-0.3, 0.4]]], atol=1e-12)
+    np.testing.assert_allclose(team._sweep(pos, vel, 3.0), [[[0.0, 0.5], [0.0, 0.0], [-0.3, 0.4]]], atol=1e-12)
     team.scout_sweep_mode = "orbit"  # tangent, counter-clockwise, faded in over the 0.5 m around the centre
-    np.testing.assert_allclose(team._sweep(pos, vel), [[[0.0, 0.5], [0.5, 0.0], [0.0, 0.1]]], atol=1e-12)
+    np.testing.assert_allclose(team._sweep(pos, vel, 3.0), [[[0.0, 0.5], [0.5, 0.0], [0.0, 0.1]]], atol=1e-12)
     team.scout_sweep_mode = "heading"
+    # kept off the walls: none within 0.5 m of one, half at 0.65 m, all from 0.8 m (fade 0.3 m)
+    team.scout_sweep_wall = 0.5
+    near = np.array([[[2.6, 0.0], [0.0, -2.35], [0.0, 0.0]]])
+    heading = np.array([[[0.0, 1.0], [1.0, 0.0], [1.0, 0.0]]])
+    np.testing.assert_allclose(team._sweep(near, heading, 3.0), [[[0.0, 0.0], [0.25, 0.0], [0.5, 0.0]]], atol=1e-12)
+    team.scout_sweep_wall = None
+    # kept off the evaders (train.teacher_scout_sweep_clear): none within 1 m of one, half at 1.15 m
+    trainer_c = Trainer(_cfg(teacher="classical", imitation_steps=100, teacher_scout_sweep=0.5,
+                             teacher_scout_sweep_clear=1.0), tmp_path / "clear")
+    clear = trainer_c.teacher.pursuer_team
+    assert clear.scout_sweep_clear == 1.0
+    scouts = np.array([[[2.0, 0.0], [0.0, 0.0], [-2.0, -2.0]]])
+    evaders = np.array([[[0.0, 1.15], [-2.5, -2.5]]])  # 2.3, 1.15 and 0.71 m from the scouts
+    np.testing.assert_allclose(clear._sweep(scouts, heading, 3.0, evaders), [[[0.0, 0.5], [0.25, 0.0], [0.0, 0.0]]],
+                               atol=1e-12)
     env = trainer.env
     obs = env.reset()
     for _ in range(5):  # under way, so that the scouts fly at a velocity

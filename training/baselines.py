@@ -252,6 +252,16 @@ class ClassicalPursuers:
     """None (the classical team): the scouts take Lloyd's step alone and settle at their cells' centroids. A number
     [normalized action]: added to Lloyd's step, a wish of this size that keeps the scouts moving, so that the team
     sees more of the arena over an episode (``scout_sweep_mode``; ``train.teacher_scout_sweep``)."""
+    scout_sweep_wall: float | None = None
+    """None: ``scout_sweep`` applies wherever the scout is. A number [m]: only to a scout at least this far plus
+    ``scout_sweep_fade`` from every wall, fading (linear) to none at this distance, so that the sweep does not carry
+    the scouts along the walls, where a runner keeping to them meets them (``train.teacher_scout_sweep_wall``)."""
+    scout_sweep_fade = 0.3
+    """The band [m] over which ``scout_sweep_wall`` and ``scout_sweep_clear`` fade the sweep out."""
+    scout_sweep_clear: float | None = None
+    """None: ``scout_sweep`` applies however near the evaders the scout is. A number [m]: only to a scout at least
+    this far plus ``scout_sweep_fade`` from every evader, fading (linear) to none at this distance, so that near a
+    chase the scouts hold Lloyd's spread and sweep the rest of the arena (``train.teacher_scout_sweep_clear``)."""
     scout_sweep_mode = "heading"
     """What ``scout_sweep`` adds: "heading": along the scout's own velocity (none at rest); "orbit": counter-clockwise
     about the arena's centre (tangent to the circle through the scout, faded in over the 0.5 m around the centre)."""
@@ -299,8 +309,8 @@ class ClassicalPursuers:
                 raise ValueError(f"ClassicalPursuers.assignment: {self.assignment!r} is not 'central' or 'local'")
             wish[:, p] = self._pursue(spec, s.pos[:, p], s.pos[:, nt:], s.vel[:, nt:], target)
         if sc.size:
-            wish[:, sc] = _clip_norm(self.lloyd_gain * (centroids[:, sc] - s.pos[:, sc]) + self._sweep(s.pos[:, sc],
-                                                                                                   s.vel[:, sc]))
+            wish[:, sc] = _clip_norm(self.lloyd_gain * (centroids[:, sc] - s.pos[:, sc])
+                                     + self._sweep(s.pos[:, sc], s.vel[:, sc], hw, s.pos[:, nt:]))
         v = wish + separation(team_pos, team_pos, self.separation_reach, self.separation_gain)
         v = avoid_obstacles(team_pos, v, radius[:nt], s.obstacle_pos, s.obstacle_radius,
                             self.obstacle_reach, self.obstacle_repulsion, self.obstacle_side_softness)
@@ -308,16 +318,25 @@ class ClassicalPursuers:
         out[:, :nt] = _clip_norm(v)
         return out
 
-    def _sweep(self, pos: np.ndarray, vel: np.ndarray) -> np.ndarray | float:
-        """``scout_sweep``'s wish ``[B, S, 2]`` for scouts at ``pos`` flying at ``vel`` (0 when it is None)."""
+    def _sweep(self, pos: np.ndarray, vel: np.ndarray, half_width: float,
+               evaders: np.ndarray | None = None) -> np.ndarray | float:
+        """``scout_sweep``'s wish ``[B, S, 2]`` for scouts at ``pos`` flying at ``vel`` in an arena of ``half_width``
+        with the evaders at ``evaders`` ``[B, E, 2]`` (0 when it is None)."""
         if self.scout_sweep is None:
             return 0.0
+        size = self.scout_sweep
+        if self.scout_sweep_wall is not None:
+            to_wall = (half_width - np.abs(pos)).min(-1, keepdims=True)
+            size = size * np.clip((to_wall - self.scout_sweep_wall) / self.scout_sweep_fade, 0.0, 1.0)
+        if self.scout_sweep_clear is not None and evaders is not None and evaders.shape[1]:
+            gap = np.linalg.norm(pos[:, :, None] - evaders[:, None], axis=-1).min(-1, keepdims=True)
+            size = size * np.clip((gap - self.scout_sweep_clear) / self.scout_sweep_fade, 0.0, 1.0)
         if self.scout_sweep_mode == "heading":
-            return self.scout_sweep * _unit(vel)
+            return size * _unit(vel)
         if self.scout_sweep_mode == "orbit":
             r = np.linalg.norm(pos, axis=-1, keepdims=True)
             tangent = np.stack([-pos[..., 1], pos[..., 0]], -1) / np.maximum(r, 1e-9)
-            return self.scout_sweep * np.clip(r / 0.5, 0.0, 1.0) * tangent
+            return size * np.clip(r / 0.5, 0.0, 1.0) * tangent
         raise ValueError(f"ClassicalPursuers.scout_sweep_mode: {self.scout_sweep_mode!r} is not 'heading' or 'orbit'")
 
     def wall_reach_for(self, spec: SwarmSpec) -> float:

@@ -243,6 +243,11 @@ class TrainConfig:
     cells' centroids. A number [normalized action]: added to their Lloyd's step, a wish of this size that keeps them
     moving (``ClassicalPursuers.scout_sweep``), so that the team sees more of the arena over an episode
     (results/issue13/teacher_scout_sweep.py). Left out of a run's config.toml while None."""
+    teacher_scout_sweep_clear: float | None = None
+    """None (the default): ``teacher_scout_sweep`` applies however near the evaders a scout is. A number [m]: only to
+    a scout at least this far plus ``ClassicalPursuers.scout_sweep_fade`` from every evader, fading to none at this
+    distance (``ClassicalPursuers.scout_sweep_clear``): near a chase the scouts hold Lloyd's spread. Needs
+    ``teacher_scout_sweep``."""
     teacher_scout_sweep_mode: str = "heading"
     """What ``teacher_scout_sweep`` adds (``ClassicalPursuers.scout_sweep_mode``): "heading": along the scout's own
     velocity; "orbit": counter-clockwise about the arena's centre."""
@@ -414,6 +419,13 @@ class TrainConfig:
                                                          and 0.0 <= self.teacher_scout_sweep <= 2.0):
             raise SpecError(f"train.teacher_scout_sweep: must be a wish in [0, 2] (normalized action), or left out for "
                             f"Lloyd's step alone, got {self.teacher_scout_sweep!r}")
+        if self.teacher_scout_sweep_clear is not None:
+            if self.teacher_scout_sweep is None:
+                raise SpecError("train.teacher_scout_sweep_clear: fades out train.teacher_scout_sweep near the evaders; "
+                                "set teacher_scout_sweep too, or leave teacher_scout_sweep_clear out")
+            if not (math.isfinite(self.teacher_scout_sweep_clear) and 0.0 <= self.teacher_scout_sweep_clear <= 10.0):
+                raise SpecError(f"train.teacher_scout_sweep_clear: must be a distance from the evaders in [0, 10] m, or "
+                                f"left out for the sweep everywhere, got {self.teacher_scout_sweep_clear!r}")
         if self.teacher_scout_sweep_mode not in ("heading", "orbit"):
             raise SpecError(f"train.teacher_scout_sweep_mode: {self.teacher_scout_sweep_mode!r} is not one of "
                             f"'heading', 'orbit'")

@@ -202,6 +202,7 @@ class Trainer:
             pursuers.lead_side_time, pursuers.lead_side_angle = tc.teacher_side_lead, tc.teacher_side_angle
             pursuers.lead_side_wall = tc.teacher_side_wall
             pursuers.scout_sweep, pursuers.scout_sweep_mode = tc.teacher_scout_sweep, tc.teacher_scout_sweep_mode
+            pursuers.scout_sweep_clear = tc.teacher_scout_sweep_clear
             self.teacher = TeamPolicy(pursuers, FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
         # the polish's own sample stream, so that the run's others are those of a run without it

@@ -9,7 +9,12 @@ could learn them. The config's teacher (side lead and the rest of ``[train]``'s 
 100 and 101 pooled, 200 episodes each per kind, the scripted fleeing evaders added), with each kind's coverage; the
 classical team first, as the bar. See results/README.md, thirtieth attempt.
 
-    cd results/issue13 && ../../.venv/bin/python teacher_scout_sweep.py CONFIG MODE@SWEEP [MODE@SWEEP ...]
+    cd results/issue13 && ../../.venv/bin/python teacher_scout_sweep.py CONFIG MODE@SWEEP[@WALL[@CLEAR]] [...]
+
+``--no-bars``: without the first two lines (the classical team, the teacher with Lloyd's step alone). ``WALL``: the
+sweep only at least that far plus 0.3 m from every wall, fading to none at it
+(``ClassicalPursuers.scout_sweep_wall``; empty: everywhere); ``CLEAR``: only at least that far plus 0.3 m from every
+evader (``ClassicalPursuers.scout_sweep_clear``).
 """
 import sys
 
@@ -18,22 +23,30 @@ from training.baselines import ClassicalPursuers
 from training.config import ExperimentConfig
 
 
-def teacher(cfg: ExperimentConfig, mode: str | None = None, sweep: float | None = None) -> LayeredClassical:
+def teacher(cfg: ExperimentConfig, mode: str | None = None, sweep: float | None = None,
+            wall: float | None = None, clear: float | None = None) -> LayeredClassical:
     tc = cfg.train
     t = LayeredClassical(cfg.spec, tc.teacher_separation_gain)
     t.c.lead_side_time, t.c.lead_side_angle, t.c.lead_side_wall = (tc.teacher_side_lead, tc.teacher_side_angle,
                                                                     tc.teacher_side_wall)
     if mode is not None:
-        t.c.scout_sweep, t.c.scout_sweep_mode = sweep, mode
+        t.c.scout_sweep, t.c.scout_sweep_mode, t.c.scout_sweep_wall = sweep, mode, wall
+        t.c.scout_sweep_clear = clear
     return t
 
 
 cfg = ExperimentConfig.from_toml(sys.argv[1])
 print(f"{cfg.name}: avoidance {cfg.spec.avoidance}; evaluation seeds {VALIDATION['seeds']} pooled; "
       "min distance [m] / tracking / coverage")
-print_suite_line(cfg, "classical team (no layer)", ClassicalPursuers, 200, coverage=True, **VALIDATION)
-print_suite_line(cfg, "teacher, Lloyd's step", lambda: teacher(cfg), 200, coverage=True, **VALIDATION)
-for arg in sys.argv[2:]:
-    mode, sweep = arg.split("@")
-    print_suite_line(cfg, f"teacher, Lloyd's step + {mode} {float(sweep):g}", lambda: teacher(cfg, mode, float(sweep)),
-                     200, coverage=True, **VALIDATION)
+args = [a for a in sys.argv[2:] if a != "--no-bars"]
+if "--no-bars" not in sys.argv:  # the bars are already in the file this run's lines go to
+    print_suite_line(cfg, "classical team (no layer)", ClassicalPursuers, 200, coverage=True, **VALIDATION)
+    print_suite_line(cfg, "teacher, Lloyd's step", lambda: teacher(cfg), 200, coverage=True, **VALIDATION)
+for arg in args:
+    mode, sweep, *rest = arg.split("@")
+    wall = float(rest[0]) if rest and rest[0] else None
+    clear = float(rest[1]) if len(rest) > 1 else None
+    print_suite_line(cfg, f"teacher, Lloyd's step + {mode} {float(sweep):g}"
+                     + (f", at least {wall:g} + 0.3 m from every wall" if wall is not None else "")
+                     + (f", at least {clear:g} + 0.3 m from every evader" if clear is not None else ""),
+                     lambda: teacher(cfg, mode, float(sweep), wall, clear), 200, coverage=True, **VALIDATION)
