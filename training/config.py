@@ -408,24 +408,12 @@ class TrainConfig:
                                                        and 0.0 <= self.teacher_side_lead <= 5.0):
             raise SpecError(f"train.teacher_side_lead: must be a look-ahead in [0, 5] s, or left out for the classical "
                             f"team's one lead, got {self.teacher_side_lead!r}")
-        if self.teacher_side_wall is not None:
-            if self.teacher_side_lead is None:
-                raise SpecError("train.teacher_side_wall: fades out train.teacher_side_lead near the walls; set "
-                                "teacher_side_lead too, or leave teacher_side_wall out")
-            if not (math.isfinite(self.teacher_side_wall) and 0.0 <= self.teacher_side_wall <= 10.0):
-                raise SpecError(f"train.teacher_side_wall: must be a distance from the walls in [0, 10] m, or left out "
-                                f"for the side lead everywhere, got {self.teacher_side_wall!r}")
+        self._check_fade("teacher_side_wall", "teacher_side_lead", "walls", "the side lead")
         if self.teacher_scout_sweep is not None and not (math.isfinite(self.teacher_scout_sweep)
                                                          and 0.0 <= self.teacher_scout_sweep <= 2.0):
             raise SpecError(f"train.teacher_scout_sweep: must be a wish in [0, 2] (normalized action), or left out for "
                             f"Lloyd's step alone, got {self.teacher_scout_sweep!r}")
-        if self.teacher_scout_sweep_clear is not None:
-            if self.teacher_scout_sweep is None:
-                raise SpecError("train.teacher_scout_sweep_clear: fades out train.teacher_scout_sweep near the evaders; "
-                                "set teacher_scout_sweep too, or leave teacher_scout_sweep_clear out")
-            if not (math.isfinite(self.teacher_scout_sweep_clear) and 0.0 <= self.teacher_scout_sweep_clear <= 10.0):
-                raise SpecError(f"train.teacher_scout_sweep_clear: must be a distance from the evaders in [0, 10] m, or "
-                                f"left out for the sweep everywhere, got {self.teacher_scout_sweep_clear!r}")
+        self._check_fade("teacher_scout_sweep_clear", "teacher_scout_sweep", "evaders", "the sweep")
         if self.teacher_scout_sweep_mode not in ("heading", "orbit"):
             raise SpecError(f"train.teacher_scout_sweep_mode: {self.teacher_scout_sweep_mode!r} is not one of "
                             f"'heading', 'orbit'")
@@ -523,6 +511,18 @@ class TrainConfig:
         for name in ("share_params", "obs_scaling", "imitation_obstacle_walls"):
             if not isinstance(getattr(self, name), bool):
                 raise SpecError(f"train.{name}: must be true or false, got {getattr(self, name)!r}")
+
+    def _check_fade(self, name: str, base: str, near: str, what: str) -> None:
+        """``name``: a distance [m] from the ``near`` (walls, evaders) that fades option ``base`` out, or None."""
+        v = getattr(self, name)
+        if v is None:
+            return
+        if getattr(self, base) is None:
+            raise SpecError(f"train.{name}: fades out train.{base} near the {near}; set {base} too, or leave {name} "
+                            f"out")
+        if not (math.isfinite(v) and 0.0 <= v <= 10.0):
+            raise SpecError(f"train.{name}: must be a distance from the {near} in [0, 10] m, or left out for {what} "
+                            f"everywhere, got {v!r}")
 
 
 @dataclass(frozen=True)
