@@ -139,6 +139,16 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(n, 1e-9)
 
 
+def _fade_in(d: np.ndarray, start: float, band: float) -> np.ndarray:
+    """0 at distances ``d`` up to ``start``, 1 from ``start + band`` on, linear in between."""
+    return np.clip((d - start) / band, 0.0, 1.0)
+
+
+def _to_wall(p: np.ndarray, half_width: float) -> np.ndarray:
+    """Distance ``[..., 1]`` from points ``p`` ``[..., 2]`` to the nearest wall of the arena."""
+    return (half_width - np.abs(p)).min(-1, keepdims=True)
+
+
 def _clip_norm(v: np.ndarray, limit: float = 1.0) -> np.ndarray:
     n = np.sqrt((v * v).sum(-1, keepdims=True))
     return v * np.minimum(1.0, limit / np.maximum(n, 1e-12))
@@ -255,7 +265,8 @@ class ClassicalPursuers:
     scout_sweep_wall: float | None = None
     """None: ``scout_sweep`` applies wherever the scout is. A number [m]: only to a scout at least this far plus
     ``scout_sweep_fade`` from every wall, fading (linear) to none at this distance, so that the sweep does not carry
-    the scouts along the walls, where a runner keeping to them meets them (``train.teacher_scout_sweep_wall``)."""
+    the scouts along the walls, where a runner keeping to them meets them (results/issue13/teacher_scout_sweep.py; no
+    ``[train]`` option: it did not help the perimeter runner at the teacher)."""
     scout_sweep_fade = 0.3
     """The band [m] over which ``scout_sweep_wall`` and ``scout_sweep_clear`` fade the sweep out."""
     scout_sweep_clear: float | None = None
@@ -326,11 +337,10 @@ class ClassicalPursuers:
             return 0.0
         size = self.scout_sweep
         if self.scout_sweep_wall is not None:
-            to_wall = (half_width - np.abs(pos)).min(-1, keepdims=True)
-            size = size * np.clip((to_wall - self.scout_sweep_wall) / self.scout_sweep_fade, 0.0, 1.0)
+            size = size * _fade_in(_to_wall(pos, half_width), self.scout_sweep_wall, self.scout_sweep_fade)
         if self.scout_sweep_clear is not None and evaders is not None and evaders.shape[1]:
             gap = np.linalg.norm(pos[:, :, None] - evaders[:, None], axis=-1).min(-1, keepdims=True)
-            size = size * np.clip((gap - self.scout_sweep_clear) / self.scout_sweep_fade, 0.0, 1.0)
+            size = size * _fade_in(gap, self.scout_sweep_clear, self.scout_sweep_fade)
         if self.scout_sweep_mode == "heading":
             return size * _unit(vel)
         if self.scout_sweep_mode == "orbit":
@@ -392,8 +402,7 @@ class ClassicalPursuers:
             c0 = np.cos(np.radians(self.lead_side_angle))
             side = np.clip((1.0 - along) / (1.0 - c0), 0.0, 1.0)
             if self.lead_side_wall is not None:
-                to_wall = (spec.arena.half_width - np.abs(tp)).min(-1, keepdims=True)
-                side = side * np.clip((to_wall - self.lead_side_wall) / self.lead_side_fade, 0.0, 1.0)
+                side = side * _fade_in(_to_wall(tp, spec.arena.half_width), self.lead_side_wall, self.lead_side_fade)
             lmax = lmax - (lmax - self.lead_side_time) * side
         lead = np.minimum(dist / spec.pursuer.max_speed, lmax)
         hw = spec.arena.half_width

@@ -36,7 +36,7 @@ from runtime.cliutil import write_text_atomic
 from runtime.observation import encode_observations
 from runtime.spec import Role
 from training.checkpoint import save_actors
-from training.config import ExperimentConfig
+from training.config import ExperimentConfig, TrainConfig
 from training.env import PursuitEnv
 from training.maddpg import CloneBuffer, ReplayBuffer
 from training.opponents import OpponentMixer
@@ -50,6 +50,24 @@ CSV_COLUMNS = ("step", "frames", "updates", "time_s", "fps", "updates_per_s", "n
                "min_dist", "avg_dist", "max_dist", "captures_per_step", "episodes",
                "critic_loss", "actor_loss", "q_mean", "int8_sensitivity", "imitation_mse", "teacher_share")
 STATE_FORMAT = 1
+
+
+def teacher_pursuers(tc: TrainConfig) -> Any:
+    """The DAgger teacher's pursuer team for ``train.teacher = "classical"``: ``ClassicalPursuers`` with ``tc``'s
+    ``teacher_*`` options (the classical team itself with every one of them at its default)."""
+    from training.baselines import ClassicalPursuers
+    pursuers = ClassicalPursuers()
+    pursuers.separation_gain = tc.teacher_separation_gain
+    pursuers.assignment = tc.teacher_assignment
+    pursuers.obstacle_side_softness = tc.teacher_obstacle_softness
+    pursuers.lead_time_max = tc.teacher_lead_time
+    if tc.teacher_lead_others != tc.teacher_lead_time:
+        pursuers.lead_time_others = tc.teacher_lead_others
+    pursuers.lead_side_time, pursuers.lead_side_angle = tc.teacher_side_lead, tc.teacher_side_angle
+    pursuers.lead_side_wall = tc.teacher_side_wall
+    pursuers.scout_sweep, pursuers.scout_sweep_mode = tc.teacher_scout_sweep, tc.teacher_scout_sweep_mode
+    pursuers.scout_sweep_clear = tc.teacher_scout_sweep_clear
+    return pursuers
 
 
 def full_speed_labels(actions: np.ndarray, full: float = 0.999) -> np.ndarray:
@@ -191,19 +209,8 @@ class Trainer:
         self.mixer = OpponentMixer(cfg.spec, tc, np.random.default_rng(tc.seed + 4))
         self.teacher = None
         if tc.teacher == "classical":  # the classical team (true state): pursuit + Lloyd scouting, fleeing evaders
-            from training.baselines import ClassicalPursuers, FleeingEvaders, TeamPolicy
-            pursuers = ClassicalPursuers()
-            pursuers.separation_gain = tc.teacher_separation_gain
-            pursuers.assignment = tc.teacher_assignment
-            pursuers.obstacle_side_softness = tc.teacher_obstacle_softness
-            pursuers.lead_time_max = tc.teacher_lead_time
-            if tc.teacher_lead_others != tc.teacher_lead_time:
-                pursuers.lead_time_others = tc.teacher_lead_others
-            pursuers.lead_side_time, pursuers.lead_side_angle = tc.teacher_side_lead, tc.teacher_side_angle
-            pursuers.lead_side_wall = tc.teacher_side_wall
-            pursuers.scout_sweep, pursuers.scout_sweep_mode = tc.teacher_scout_sweep, tc.teacher_scout_sweep_mode
-            pursuers.scout_sweep_clear = tc.teacher_scout_sweep_clear
-            self.teacher = TeamPolicy(pursuers, FleeingEvaders())
+            from training.baselines import FleeingEvaders, TeamPolicy
+            self.teacher = TeamPolicy(teacher_pursuers(tc), FleeingEvaders())
         self.teacher_rng = np.random.default_rng(tc.seed + 5)
         # the polish's own sample stream, so that the run's others are those of a run without it
         self.polish_gen = torch.Generator(device=tc.device).manual_seed(tc.seed + 6)

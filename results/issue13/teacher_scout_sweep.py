@@ -16,22 +16,23 @@ sweep only at least that far plus 0.3 m from every wall, fading to none at it
 (``ClassicalPursuers.scout_sweep_wall``; empty: everywhere); ``CLEAR``: only at least that far plus 0.3 m from every
 evader (``ClassicalPursuers.scout_sweep_clear``).
 """
+import dataclasses
 import sys
 
 from _layered import VALIDATION, LayeredClassical, print_suite_line
 from training.baselines import ClassicalPursuers
 from training.config import ExperimentConfig
+from training.train import teacher_pursuers
 
 
-def teacher(cfg: ExperimentConfig, mode: str | None = None, sweep: float | None = None,
+def teacher(cfg: ExperimentConfig, mode: str = "heading", sweep: float | None = None,
             wall: float | None = None, clear: float | None = None) -> LayeredClassical:
-    tc = cfg.train
-    t = LayeredClassical(cfg.spec, tc.teacher_separation_gain)
-    t.c.lead_side_time, t.c.lead_side_angle, t.c.lead_side_wall = (tc.teacher_side_lead, tc.teacher_side_angle,
-                                                                    tc.teacher_side_wall)
-    if mode is not None:
-        t.c.scout_sweep, t.c.scout_sweep_mode, t.c.scout_sweep_wall = sweep, mode, wall
-        t.c.scout_sweep_clear = clear
+    """The config's teacher (``training.train.teacher_pursuers``) with the sweep's options replaced, flown through the
+    config's layer; ``wall`` (``ClassicalPursuers.scout_sweep_wall``) has no ``[train]`` option."""
+    t = LayeredClassical(cfg.spec)
+    t.c = teacher_pursuers(dataclasses.replace(cfg.train, teacher_scout_sweep=sweep, teacher_scout_sweep_mode=mode,
+                                               teacher_scout_sweep_clear=clear))
+    t.c.scout_sweep_wall = wall
     return t
 
 
