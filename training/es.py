@@ -264,15 +264,12 @@ class TeamES:
     def _frozen(self) -> np.ndarray:
         """Mask over ``theta`` of the weights this iteration leaves alone: the pursuers' once ``es_pursuer_iterations``
         iterations have moved them (``train.es_pursuer_iterations``)."""
-        mask = np.zeros(self.theta.size, dtype=bool)
+        mask = np.zeros((1, self.theta.size), dtype=bool)
         k = self.tc.es_pursuer_iterations
         if k is not None and self.iteration >= k:
-            start = 0
-            for r, n in zip(self.roles, self.sizes):
-                if r.role is Role.PURSUER:
-                    mask[start:start + n] = True
-                start += n
-        return mask
+            for r, block in zip(self.roles, self._split(mask)):  # views of the mask, role by role
+                block[:] = r.role is Role.PURSUER
+        return mask[0]
 
     @staticmethod
     def _ascent(f: np.ndarray, eps: np.ndarray, sig: float) -> np.ndarray:
