@@ -164,7 +164,9 @@ class TrainConfig:
     newest), so that a run's course can be evaluated afterwards (``swarm-train evaluate --run RUN --actors
     snapshots/actors_006000.pt``)."""
     checkpoint_buffer: bool = True
-    """Also save the replay buffer with each checkpoint, so that --resume continues exactly."""
+    """Also save the replay buffer with each checkpoint, so that --resume continues exactly (and --init-from and
+    the int8 clone start from it). It is the big file of a run folder: ``checkpoints/buffer.pt`` is 776 MB for
+    configs/role_based.toml's 200,000 transitions; delete it from a finished run you will not resume or fine-tune."""
     threads: int = 2
     """torch CPU threads."""
     device: str = "cpu"
