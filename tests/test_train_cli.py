@@ -104,6 +104,42 @@ def test_resume_continues_the_run_exactly_where_it_stopped(tiny_run, tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+
+def test_a_full_disk_keeps_the_last_checkpoint_whole_and_says_so_in_one_line(tiny_run, tmp_path, capsys,
+                                                                               monkeypatch):
+    """torch reports a full disk as a RuntimeError from its zip writer, after it wrote part of the file: the run
+    stops with one line that names the file, the free space and the fix, and the checkpoint it had is untouched
+    (state and buffer of the same step, no partial file beside them)."""
+    import shutil
+
+    import training.checkpoint
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    ckpt = run / "checkpoints"
+    before = {p.name: p.read_bytes() for p in [*ckpt.iterdir(), run / "actors.pt"]}
+    real_save = training.checkpoint.torch.save
+
+    def full_disk(obj, f, *args, **kwargs):
+        if str(f).endswith("state.pt.tmp"):
+            Path(f).write_bytes(b"PK\x03\x04 half a zip")
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 704 vs 598")
+        return real_save(obj, f, *args, **kwargs)
+
+    monkeypatch.setattr(training.checkpoint.torch, "save", full_disk)
+    rc, _, err = in_process(capsys, "train", "--out", str(run), "--resume", "--steps", "200", "--no-progress")
+    assert rc == 1
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith("swarm-train train: failed: ")
+    assert "state.pt" in err and "MB free there" in err
+    assert "train.checkpoint_buffer = false" in err and "--resume" in err
+    assert "unexpected pos" in err  # what torch said, kept
+    assert {p.name: p.read_bytes() for p in [*ckpt.iterdir(), run / "actors.pt"]} == before
+    assert not list(run.rglob("*.tmp"))
+    monkeypatch.setattr(training.checkpoint.torch, "save", real_save)
+    rc, out, err = in_process(capsys, "train", "--out", str(run), "--resume", "--steps", "200", "--no-progress")
+    assert rc == 0, err  # once there is room again, it resumes from the kept checkpoint
+    assert "finished at env step 200" in out
+
 def test_init_from_fine_tunes_another_run_under_a_new_config(tiny_run, tmp_path):
     import torch
     cfg = tmp_path / "int8.toml"

@@ -11,6 +11,9 @@
 """
 from __future__ import annotations
 
+import errno
+import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +27,39 @@ FORMAT = 1
 
 class CheckpointError(ValueError):
     """An actor checkpoint is missing, unreadable or does not match its spec."""
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint could not be written (a full disk, most often); what was on disk before is kept whole."""
+
+
+def save_torch_files(items: Sequence[tuple[Any, str | Path]], fix: str = "free some space and run again") -> None:
+    """``torch.save`` each ``(object, path)`` all or nothing: every file is first written beside its place as
+    ``PATH.tmp``, and only once all are written are they renamed over the old ones, so that a failure (a full
+    disk: torch reports it as a RuntimeError from its zip writer) leaves the previous files whole, matching each
+    other, and no partial file behind. Raises ``CheckpointWriteError`` naming the file, the free space and
+    ``fix``."""
+    done: list[tuple[Path, Path]] = []
+    for obj, path in items:
+        p = Path(path)
+        tmp = p.with_suffix(p.suffix + ".tmp")
+        try:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            done.append((tmp, p))
+            torch.save(obj, tmp)
+        except (OSError, RuntimeError) as exc:
+            for t, _ in done:
+                t.unlink(missing_ok=True)
+            try:
+                free = f"{shutil.disk_usage(p.parent).free / 1e6:.0f} MB free there"
+            except OSError:
+                free = "its disk unreadable"
+            raise CheckpointWriteError(
+                getattr(exc, "errno", None) or errno.EIO,
+                f"could not write {str(p)!r} ({' '.join(str(exc).split())[:160]}; {free}); what was there before is "
+                f"kept as it was: {fix}") from exc
+    for tmp, p in done:
+        tmp.replace(p)
 
 
 def save_actors(path: str | Path, spec: SwarmSpec, actors: list[Actor], config: dict[str, Any] | None = None,
@@ -41,10 +77,7 @@ def save_actors(path: str | Path, spec: SwarmSpec, actors: list[Actor], config: 
     doc = {"format": FORMAT, "spec": spec.to_dict(), "spec_hash": spec.hash, "agents": agents,
            "config": config or {}, "meta": meta or {}}
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_suffix(p.suffix + ".tmp")
-    torch.save(doc, tmp)
-    tmp.replace(p)
+    save_torch_files([(doc, p)])
     return p
 
 

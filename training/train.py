@@ -8,7 +8,8 @@ A run folder holds:
   env's, unscaled, averaged per agent of the role over the window; ``return_*`` are mean episode returns of
   episodes finished in the window; distances are pursuer-evader centre distances [m] as in runtime.metrics);
 - ``tb/``: the same scalars as TensorBoard events;
-- ``checkpoints/state.pt`` (+ ``buffer.pt``): the full training state for ``--resume``;
+- ``checkpoints/state.pt`` (+ ``buffer.pt``): the full training state for ``--resume``, written all or nothing (a
+  full disk leaves the previous checkpoint whole: ``training.checkpoint.save_torch_files``);
 - ``actors.pt``: the per-agent actors in the ``training.checkpoint`` format (what export and evaluation read),
   rewritten with every checkpoint.
 
@@ -35,7 +36,7 @@ from runtime.avoidance import avoid_agents
 from runtime.cliutil import write_text_atomic
 from runtime.observation import encode_observations
 from runtime.spec import Role
-from training.checkpoint import save_actors
+from training.checkpoint import save_actors, save_torch_files
 from training.config import ExperimentConfig, TrainConfig
 from training.env import PursuitEnv
 from training.maddpg import CloneBuffer, ReplayBuffer
@@ -155,10 +156,6 @@ def dump_toml(doc: dict[str, Any], prefix: str = "") -> str:
     return "\n".join(x for x in lines if x is not None).strip() + "\n"
 
 
-def _save_torch(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
 
 
 class _Window:
@@ -336,11 +333,16 @@ class Trainer:
               "opponent_rng": self.mixer.rng.bit_generator.state, "teacher_rng": self.teacher_rng.bit_generator.state,
               "polished": self.polished, "polish_gen": self.polish_gen.get_state(),
               "augment_rng": self.augment_rng.bit_generator.state, "augment_gen": self.augment_gen.get_state()}
+        files: list[tuple[Any, Path]] = []
         if self.tc.checkpoint_buffer:
-            _save_torch(self.buffer.state_dict(), self.ckpt_dir / "buffer.pt")
+            files.append((self.buffer.state_dict(), self.ckpt_dir / "buffer.pt"))
             if self.clone_buffer is not None:
-                _save_torch(self.clone_buffer.state_dict(), self.ckpt_dir / "clone_buffer.pt")
-        _save_torch(st, self.ckpt_dir / "state.pt")
+                files.append((self.clone_buffer.state_dict(), self.ckpt_dir / "clone_buffer.pt"))
+        files.append((st, self.ckpt_dir / "state.pt"))
+        # all or nothing: a full disk keeps the previous checkpoint whole (state and buffer of the same step)
+        save_torch_files(files, "free some space" + (" (or set train.checkpoint_buffer = false: the replay buffer is "
+                                                      "most of a checkpoint)" if self.tc.checkpoint_buffer else "")
+                         + ", then continue the run with --resume")
         meta = {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
                 "run": str(self.out)}
         save_actors(self.out / "actors.pt", self.spec, self.agent.to_actors(), self.cfg.to_dict(), meta)
@@ -642,7 +644,7 @@ class Trainer:
             bar = tqdm(total=tc.es_iterations, initial=es.iteration, unit="it", desc="ES", dynamic_ncols=True)
 
         def save() -> None:
-            _save_torch(es.state_dict(), path)
+            save_torch_files([(es.state_dict(), path)])
             team = es.team_actors()
             final = [team.get(i, a) for i, a in enumerate(actors)]
             meta = {"git_revision": git_revision(), "env_steps": self.env_step, "updates": self.agent.updates,
