@@ -32,6 +32,7 @@ batch_size = 16
 warmup_steps = 10
 imitation_steps = 20
 imitation_batch = 16
+imitation_polish_steps = 20
 es_iterations = 0
 log_every = 20
 checkpoint_every = 1000
@@ -174,7 +175,9 @@ def _group_alive(pgid: int) -> bool:
 def test_sigterm_stops_the_sweep_queued_jobs_never_start_running_ones_checkpoint(tmp_path):
     # one worker, two long jobs: the first trains, the second is queued
     p = _sweep_file(tmp_path).read_text().replace("steps = 40\n", "steps = 200000\n") \
-        .replace("checkpoint_every = 1000", "checkpoint_every = 100000").replace("imitation_steps = 20", "imitation_steps = 0")
+        .replace("checkpoint_every = 1000", "checkpoint_every = 100000") \
+        .replace("imitation_steps = 20", "imitation_steps = 0") \
+        .replace("imitation_polish_steps = 20", "imitation_polish_steps = 0")  # no DAgger phase: nothing to polish
     (tmp_path / "sweep.toml").write_text(p)
     proc = subprocess.Popen([sys.executable, "-c", "import sys; from training.cli import main; sys.exit(main())",
                              "sweep", "--config", str(tmp_path / "sweep.toml"), "--workers", "1"],
