@@ -156,8 +156,6 @@ def dump_toml(doc: dict[str, Any], prefix: str = "") -> str:
     return "\n".join(x for x in lines if x is not None).strip() + "\n"
 
 
-
-
 class _Window:
     """Sums of the logged quantities since the last CSV row."""
 

@@ -72,11 +72,10 @@ class GapRunner(ScriptedEvaders):
         hw = env.spec.arena.half_width
         rel = tp[:, None] - ep[:, :, None]  # [B, E, T, 2] from the evader to each threat
         seen = np.linalg.norm(rel, axis=-1) < p["aware"][..., None]
-        # the walls' nearest points: +x, -x, +y, -y
-        walls = np.stack([np.stack([hw - ep[..., 0], np.zeros_like(ep[..., 0])], -1),
-                          np.stack([-hw - ep[..., 0], np.zeros_like(ep[..., 0])], -1),
-                          np.stack([np.zeros_like(ep[..., 1]), hw - ep[..., 1]], -1),
-                          np.stack([np.zeros_like(ep[..., 1]), -hw - ep[..., 1]], -1)], axis=2)  # [B, E, 4, 2]
+        # from the evader to each wall's nearest point: +x, -x, +y, -y
+        x, y, zero = ep[..., 0], ep[..., 1], np.zeros_like(ep[..., 0])
+        walls = np.stack([np.stack(w, -1) for w in ((hw - x, zero), (-hw - x, zero), (zero, hw - y), (zero, -hw - y))],
+                         axis=2)  # [B, E, 4, 2]
         near_wall = np.abs(walls).sum(-1) < p["wall"][..., None]
         rel = np.concatenate([rel, walls], axis=2)
         active = np.concatenate([seen, near_wall], axis=2)
