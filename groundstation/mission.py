@@ -75,6 +75,21 @@ class SessionSource:
             return drone, None
         return drone, s.tracker.fresh(drone)
 
+    def why_not(self, index: int) -> str:
+        """Why ``self(index, p)`` had no fresh state for actor ``index`` (the agent's fault message ends with it)."""
+        actor = self.agent_ids[index]
+        s = self.session
+        drone = s.assignment.by_actor.get(actor)
+        if drone is None:
+            return f"no drone flies actor {actor}"
+        if not s.is_flying(drone):
+            return f"drone {drone} (actor {actor}) is not flying"
+        age = s.tracker.age(drone)
+        if math.isinf(age):
+            return f"no position of drone {drone} (actor {actor}) yet"
+        return (f"the position of drone {drone} (actor {actor}) is {age:.2f} s old "
+                f"(stale after {s.tracker.stale_after:.2f} s)")
+
     def __call__(self, index: int, p: Perception) -> bool:
         _, me = self.state(self.agent_ids[index])
         if me is None:

@@ -8,7 +8,9 @@ station:
 ``StateSource``  ``source(index, perception) -> bool``
     Write drone ``index``'s current state into the preallocated ``Perception`` (own position and velocity
     with their timestamp on the swarm clock, the obstacle map, the agents its own sensors see this instant)
-    and return True; return False when there is no fresh state (the drone then gets the safe action).
+    and return True; return False when there is no fresh state (the drone then gets the safe action). A source
+    may also have ``why_not(index) -> str``, which says why it had none (no drone, not flying, a stale position):
+    the fault's message and its log line then end with it.
 ``CommandSink``  ``sink(index, velocity)``
     Send the velocity setpoint ``[vx, vy]`` [m/s, world frame] to drone ``index``. The vector is already
     limited to the role's ``max_speed``; zero is the safe action (hold position). The array is reused by
@@ -299,7 +301,8 @@ class Agent:
         self._t_state_read = self.clock()
         if not self.source(self.index, p):
             self.stats.no_state += 1
-            self._fault("no fresh state from the state source")
+            why = getattr(self.source, "why_not", None)
+            self._fault("no fresh state from the state source" + (f": {why(self.index)}" if why is not None else ""))
             return False
         self._have_state = True
         if p.episode != self._epoch:

@@ -199,10 +199,16 @@ def test_non_finite_state_and_missing_state_give_the_safe_action(full):
     a.tick()
     np.testing.assert_array_equal(sent[-1], 0.0)
     assert a.stats.no_state == 1 and a.stats.faults == 2
+    assert a.stats.last_fault == "no fresh state from the state source"
+    source.why_not = lambda i: f"drone cf{i} is not flying"  # a source that can say why: the message ends with it
+    a.tick()
+    np.testing.assert_array_equal(sent[-1], 0.0)
+    assert a.stats.last_fault == "no fresh state from the state source: drone cf0 is not flying"
+    assert a.stats.no_state == 2 and a.stats.faults == 3
     mode["v"] = "ok"
     v = a.tick()
-    assert np.linalg.norm(v) <= spec.role(spec.roles[0]).max_speed + 1e-9 and a.stats.faults == 2
-    assert a.stats.ticks == 3 and a.stats.actions == 2
+    assert np.linalg.norm(v) <= spec.role(spec.roles[0]).max_speed + 1e-9 and a.stats.faults == 3
+    assert a.stats.ticks == 4 and a.stats.actions == 2
 
 
 def test_policy_of_the_wrong_role_is_refused(full):
