@@ -104,7 +104,6 @@ def test_resume_continues_the_run_exactly_where_it_stopped(tiny_run, tmp_path):
     assert r.returncode == 0, r.stderr
 
 
-
 def test_a_full_disk_keeps_the_last_checkpoint_whole_and_says_so_in_one_line(tiny_run, tmp_path, capsys,
                                                                                monkeypatch):
     """torch reports a full disk as a RuntimeError from its zip writer, after it wrote part of the file: the run
@@ -139,6 +138,7 @@ def test_a_full_disk_keeps_the_last_checkpoint_whole_and_says_so_in_one_line(tin
     rc, out, err = in_process(capsys, "train", "--out", str(run), "--resume", "--steps", "200", "--no-progress")
     assert rc == 0, err  # once there is room again, it resumes from the kept checkpoint
     assert "finished at env step 200" in out
+
 
 def test_init_from_fine_tunes_another_run_under_a_new_config(tiny_run, tmp_path):
     import torch
